@@ -17,6 +17,8 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from model.errors import UserInputError
+
 N_FOURIER = 10
 """Harmonics of the periodic Coulomb part: a0..a10 (11 values) and b1..b10 (10 values)."""
 
@@ -98,9 +100,13 @@ class MotorFriction(Section):
     s3: Finite | None = Field(default=None, description="average Coulomb level, constant of C(θ_m) [N·m]")
     a: list[Finite] | None = Field(default=None, description="Fourier cosine coefficients a0..a10 [N·m]")
     b: list[Finite] | None = Field(default=None, description="Fourier sine coefficients b1..b10 [N·m]")
-    v_c: NonNegative | None = Field(default=None, description="threshold velocity of the moving branch [rad/s]")
+    v_c: NonNegative | None = Field(
+        default=None, description="threshold velocity of the moving branch [rad/s]"
+    )
     k_v: Finite | None = Field(default=None, description="velocity factor of the moving branch [s/rad]")
-    static_factor: Positive | None = Field(default=None, description="static / Coulomb ratio at zero speed [–]")
+    static_factor: Positive | None = Field(
+        default=None, description="static / Coulomb ratio at zero speed [–]"
+    )
     f_cm: NonNegative | None = Field(default=None, description="baseline laws: Coulomb friction level [N·m]")
     f_sm: NonNegative | None = Field(default=None, description="baseline laws: static friction level [N·m]")
     omega_sm: Positive | None = Field(default=None, description="baseline laws: Stribeck velocity [rad/s]")
@@ -157,7 +163,9 @@ class LoadFriction(Section):
         if self.load_law == "coulomb_viscous" and self.f_sl is None and self.f_cl is not None:
             object.__setattr__(self, "f_sl", self.f_cl)
         _check_law_fields(self, self.load_law, _LOAD_LAW_FIELDS[self.load_law], (), "load_law")
-        if self.load_law in ("coulomb_viscous", "stribeck", "lugre") and (self.f_sl or 0.0) < (self.f_cl or 0.0):
+        if self.load_law in ("coulomb_viscous", "stribeck", "lugre") and (self.f_sl or 0.0) < (
+            self.f_cl or 0.0
+        ):
             raise ValueError("f_sl must be ≥ f_cl (static friction at least the Coulomb level)")
         return self
 
@@ -280,11 +288,16 @@ class HarmonicDriveModel(BaseModel):
             raise ValueError("hysteresis needs a compliant transmission: set transmission.K_s")
         ns = self.nonlinear_stiffness
         if ns is not None and not math.isclose(ns.K1, self.transmission.K_s or 0.0, rel_tol=1e-9):
-            raise ValueError(f"transmission.K_s ({self.transmission.K_s}) must equal nonlinear_stiffness.K1 ({ns.K1})")
+            raise ValueError(
+                f"transmission.K_s ({self.transmission.K_s}) must equal nonlinear_stiffness.K1 ({ns.K1})"
+            )
         smooth = self.motor_friction.motor_law in ("lugre", "dahl")
         for effect in ("stribeck", "direction_asymmetry", "load_dependent_friction", "thermal_drift"):
             if smooth and getattr(self, effect) is not None:
-                raise ValueError(f"{effect} applies to Karnopp-type motor laws, not motor_law={self.motor_friction.motor_law!r}")
+                raise ValueError(
+                    f"{effect} applies to Karnopp-type motor laws,"
+                    f" not motor_law={self.motor_friction.motor_law!r}"
+                )
         return self
 
     @property
@@ -317,11 +330,13 @@ class HarmonicDriveModel(BaseModel):
         """A new validated model with whole sections or top-level fields replaced."""
         data = self.to_dict()
         for key, value in sections.items():
-            data[key] = value.model_dump(mode="json", exclude_none=True) if isinstance(value, BaseModel) else value
+            data[key] = (
+                value.model_dump(mode="json", exclude_none=True) if isinstance(value, BaseModel) else value
+            )
         return HarmonicDriveModel.model_validate(data)
 
 
-class ModelFileError(ValueError):
+class ModelFileError(UserInputError):
     """A model file cannot be read or breaks the schema; the message is one line naming file and field."""
 
 
@@ -345,7 +360,9 @@ def _first_error(exc: ValidationError) -> str:
 def parse_model(data: Any, source: str = "model") -> HarmonicDriveModel:
     """Validate plain data as a model; errors name `source` and the field."""
     if not isinstance(data, dict):
-        raise ModelFileError(f"{source}: a model file must be a mapping of sections, got {type(data).__name__}")
+        raise ModelFileError(
+            f"{source}: a model file must be a mapping of sections, got {type(data).__name__}"
+        )
     try:
         return HarmonicDriveModel.model_validate(data)
     except ValidationError as exc:
@@ -372,7 +389,9 @@ def load_model(name_or_path: str | Path) -> HarmonicDriveModel:
         detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         mark = getattr(exc, "problem_mark", None)
         at = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ModelFileError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'YAML'}{at}: {detail}") from None
+        raise ModelFileError(
+            f"{path}: not valid {'JSON' if path.suffix == '.json' else 'YAML'}{at}: {detail}"
+        ) from None
     return parse_model(data, str(path))
 
 

@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from model.errors import UserInputError
+
 INPUT_COLUMNS = ("u", "i_cmd", "tau_m")
 """Input columns in order of preference when a run is replayed: voltage, current, torque."""
 
@@ -29,7 +31,7 @@ KNOWN_COLUMNS = {
 """The CONTRACT.md columns and their units. Runs may carry further columns."""
 
 
-class RunFormatError(ValueError):
+class RunFormatError(UserInputError):
     """A run table breaks the run format; the message names the column and what is wrong."""
 
 

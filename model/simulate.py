@@ -1,0 +1,146 @@
+"""Open-loop simulation to the run format: a profile over a duration, or a replay of a run's inputs."""
+
+from __future__ import annotations
+
+import math
+from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
+
+from model import kernel as k
+from model.errors import UserInputError
+from model.inputs import InputProfile, parse_input_spec
+from model.params import HarmonicDriveModel
+from model.plant import INPUT_COLUMN, MODE_OF_COLUMN, InputMode, Plant
+from model.run import Run, RunFormatError
+
+SIM_COLUMNS = ("t", "theta_m", "omega_m", "theta_l", "omega_l", "i_a", "tau_ext")
+DIAGNOSTIC_COLUMNS = {"tau_m": k.OUT_TAU_M, "F_m": k.OUT_F_M, "F_l": k.OUT_F_L, "T_s": k.OUT_T_S}
+_CHANNEL = {
+    "t": k.OUT_T,
+    "theta_m": k.OUT_THETA_M,
+    "omega_m": k.OUT_OMEGA_M,
+    "theta_l": k.OUT_THETA_L,
+    "omega_l": k.OUT_OMEGA_L,
+    "i_a": k.OUT_I_A,
+    "tau_ext": k.OUT_TAU_EXT,
+}
+
+
+class SimulationError(UserInputError):
+    """Simulation settings that cannot work (a step that does not divide the sample period...)."""
+
+
+def _as_profile(value: InputProfile | str | float) -> InputProfile:
+    if isinstance(value, InputProfile):
+        return value
+    if isinstance(value, str):
+        return parse_input_spec(value)
+    return InputProfile("const", {"value": float(value)})
+
+
+def _run_from_rows(
+    rows: np.ndarray, mode: InputMode, meta: dict[str, Any], diagnostics: bool, t: np.ndarray | None = None
+) -> Run:
+    columns = {name: rows[:, ch].copy() for name, ch in _CHANNEL.items()}
+    if t is not None:
+        columns["t"] = t.copy()
+    columns[INPUT_COLUMN[mode]] = rows[:, k.OUT_DRIVE].copy()
+    if diagnostics:
+        columns.update({name: rows[:, ch].copy() for name, ch in DIAGNOSTIC_COLUMNS.items()})
+    return Run(columns, meta)
+
+
+def _meta(model: HarmonicDriveModel, rate_hz: float, **extra: Any) -> dict[str, Any]:
+    return {
+        "sample_rate_hz": rate_hz,
+        "source": "sim",
+        "model": {"name": model.name, "hash": model.content_hash()},
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        **extra,
+    }
+
+
+def simulate(
+    model: HarmonicDriveModel,
+    input: InputProfile | str | float,
+    duration_s: float,
+    dt_s: float = 1e-4,
+    rate_hz: float = 1000.0,
+    mode: InputMode = "voltage",
+    tau_ext: InputProfile | str | float = 0.0,
+    theta_m0: float = 0.0,
+    diagnostics: bool = False,
+) -> Run:
+    """Simulate `model` driven by a profile for `duration_s`; samples at `rate_hz` in the run format.
+
+    The input is evaluated at every integration step (not only at the samples). With
+    `diagnostics=True` the run also carries τ_m, F_m, F_l and T_s, the torques the model applied.
+    """
+    if not (duration_s > 0 and math.isfinite(duration_s)):
+        raise SimulationError(f"duration must be a positive number of seconds, got {duration_s}")
+    if not (0 < dt_s <= 0.01):
+        raise SimulationError(f"dt must be in (0, 0.01] s, got {dt_s}")
+    decim = round(1.0 / (rate_hz * dt_s)) if rate_hz > 0 else 0
+    if decim < 1 or not math.isclose(decim * dt_s * rate_hz, 1.0, rel_tol=1e-6):
+        raise SimulationError(
+            f"the sample period 1/rate = {1 / rate_hz if rate_hz > 0 else math.inf:g} s must be a whole"
+            f" multiple of dt = {dt_s:g} s"
+        )
+    n_steps = round(duration_s / dt_s)
+    t = np.arange(n_steps) * dt_s
+    profile = _as_profile(input)
+    load = _as_profile(tau_ext)
+    drive = profile(t, duration_s)
+    load_values = load(t, duration_s) if load.kind != "const" else np.array([load.values["value"]])
+    plant = Plant(model)
+    plant.reset(theta_m=theta_m0)
+    rows = plant.advance(drive, mode, load_values, dt_s, decim)
+    meta = _meta(model, rate_hz, experiment="simulate", input=profile.spec, input_mode=mode, dt_s=dt_s)
+    if load.kind != "const" or load.values["value"] != 0.0:
+        meta["tau_ext"] = load.spec
+    return _run_from_rows(rows, mode, meta, diagnostics)
+
+
+def _substeps(interval_s: float, dt_s: float) -> int:
+    return max(1, math.ceil(interval_s / dt_s - 1e-9))
+
+
+def replay(model: HarmonicDriveModel, run: Run, dt_s: float = 1e-4, diagnostics: bool = False) -> Run:
+    """Drive `model` with the input columns of `run` on its own time base, from its first state.
+
+    Inputs are held between samples (as a digital drive holds them). Each sample interval is cut into
+    equal steps no longer than `dt_s`, so irregular time bases from real hardware replay exactly.
+    """
+    column = run.input_column
+    if column is None:
+        raise RunFormatError("run has no input column: replay needs one of u, i_cmd, tau_m")
+    mode = MODE_OF_COLUMN[column]
+    t = run.t
+    drive = run[column]
+    load = run["tau_ext"] if "tau_ext" in run else np.zeros(len(t))
+    plant = Plant(model)
+    plant.reset(
+        theta_m=float(run["theta_m"][0]),
+        omega_m=float(run["omega_m"][0]) if "omega_m" in run else 0.0,
+        theta_l=float(run["theta_l"][0]) if "theta_l" in run else None,
+        omega_l=float(run["omega_l"][0]) if "omega_l" in run else None,
+    )
+    intervals = np.diff(t)
+    counts = np.array([_substeps(h, dt_s) for h in intervals])
+    steps = intervals / counts
+    rows = np.empty((len(t), k.N_OUT))
+    if np.allclose(steps, steps[0], rtol=1e-9, atol=0.0) and np.all(counts == counts[0]):
+        # Regular time base: one compiled call for the whole run.
+        n = int(counts[0])
+        got = plant.advance(np.repeat(drive[:-1], n), mode, np.repeat(load[:-1], n), float(steps[0]), n)
+        rows[:-1] = got
+    else:
+        for i, (n, h) in enumerate(zip(counts, steps, strict=True)):
+            rows[i] = plant.advance(np.full(n, drive[i]), mode, load[i : i + 1], float(h), n)[0]
+    # The last sample: the state reached at the end, with the last input applied to it.
+    rows[-1] = plant.advance(drive[-1:], mode, load[-1:], dt_s, 1)[0]
+    meta = _meta(model, run.sample_rate_hz, experiment="replay", input_mode=mode, dt_s=dt_s)
+    meta["replayed"] = {k_: run.meta[k_] for k_ in ("experiment", "source", "created") if k_ in run.meta}
+    return _run_from_rows(rows, mode, meta, diagnostics, t=t)
