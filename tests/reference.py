@@ -18,7 +18,11 @@ def variant(model: HarmonicDriveModel, **changes: Any) -> HarmonicDriveModel:
     for key, value in changes.items():
         if value is None:
             data.pop(key, None)
-        elif isinstance(value, dict) and isinstance(data.get(key), dict) and not {"motor_law", "load_law"} & set(value):
+        elif (
+            isinstance(value, dict)
+            and isinstance(data.get(key), dict)
+            and not {"motor_law", "load_law"} & set(value)
+        ):
             data[key] = {**data[key], **value}
         else:
             data[key] = value

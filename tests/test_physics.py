@@ -48,7 +48,9 @@ def test_friction_at_constant_speed_equals_formula(seed: HarmonicDriveModel, the
 def test_steady_friction_api_matches_formula(seed: HarmonicDriveModel):
     theta = np.linspace(-50, 250, 301)
     omega = np.where(np.arange(301) % 2, -1.0, 1.0) * np.linspace(0.05, 80, 301)
-    assert np.allclose(Plant(seed).steady_friction(theta, omega), article_friction(seed, theta, omega), rtol=1e-12)
+    assert np.allclose(
+        Plant(seed).steady_friction(theta, omega), article_friction(seed, theta, omega), rtol=1e-12
+    )
 
 
 @pytest.mark.parametrize("mode", ["current", "voltage"])
@@ -133,7 +135,9 @@ def test_energy_balance(seed: HarmonicDriveModel):
     friction_work = np.sum(run["F_m"][:-1] * w_m + run["F_l"][:-1] * w_l) * dt
     load_work = np.sum(run["tau_ext"][:-1] * w_l) * dt
     deflection = r * run["theta_m"][-1] - run["theta_l"][-1]
-    stored = 0.5 * J_m * run["omega_m"][-1] ** 2 + 0.5 * J_l * run["omega_l"][-1] ** 2 + 0.5 * K_s * deflection**2
+    stored = (
+        0.5 * J_m * run["omega_m"][-1] ** 2 + 0.5 * J_l * run["omega_l"][-1] ** 2 + 0.5 * K_s * deflection**2
+    )
     assert friction_work > 0, "friction only dissipates"
     balance = motor_work - (stored + friction_work + load_work)
     # Tolerance 1e-6 of the motor work (4.5e-6 J, well under the 1.6e-4 J stored at the end): with
@@ -192,7 +196,9 @@ def test_first_order_convergence_on_the_linear_case(seed: HarmonicDriveModel):
     )
     reference = simulate(model, "sine:amp=2,freq=2", 0.5, dt_s=1e-6, rate_hz=1000)["theta_l"]
     errors = [
-        np.max(np.abs(simulate(model, "sine:amp=2,freq=2", 0.5, dt_s=dt, rate_hz=1000)["theta_l"] - reference))
+        np.max(
+            np.abs(simulate(model, "sine:amp=2,freq=2", 0.5, dt_s=dt, rate_hz=1000)["theta_l"] - reference)
+        )
         for dt in (1e-4, 1e-5)
     ]
     # First order: ten times smaller step, about ten times smaller error (accept 5×–20×).
