@@ -26,10 +26,7 @@ LAWS = {
 
 def _steady_level(law: str, omega: float, side: str = "m") -> float:
     """Each law's friction at constant speed (LuGre's steady state is its Stribeck curve)."""
-    if law in ("stribeck", "lugre"):
-        level = F_C + (F_S - F_C) * np.exp(-((omega / OMEGA_S) ** 2))
-    else:
-        level = F_C
+    level = F_C + (F_S - F_C) * np.exp(-((omega / OMEGA_S) ** 2)) if law in ("stribeck", "lugre") else F_C
     return float(np.sign(omega) * level + B[side] * omega)
 
 
