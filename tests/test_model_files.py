@@ -151,7 +151,7 @@ def test_effect_sections_are_checked_against_the_transmission(tmp_path: Path):
     data["nonlinear_stiffness"] = {"K1": 3e4, "K2": 5e4, "K3": 6e4, "T1": 10.0, "T2": 40.0}
     path = tmp_path / "ns.json"
     path.write_text(json.dumps(data))
-    with pytest.raises(ModelFileError, match="must equal nonlinear_stiffness.K1"):
+    with pytest.raises(ModelFileError, match=r"must equal nonlinear_stiffness\.K1"):
         load_model(path)
     data["transmission"] = {"K_s": None}
     path.write_text(json.dumps(data))
