@@ -32,7 +32,7 @@ def _print_json(data: Any) -> None:
 
 
 def cmd_model_list(args: argparse.Namespace) -> int:
-    rows = []
+    rows: list[dict[str, Any]] = []
     for name in preset_names():
         model = load_model(name)
         rows.append({"name": name, "effects": model.effects, "description": model.description})
@@ -131,7 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--input-file", metavar="RUN", help="replay the input columns of a run file")
     sim.add_argument("--duration", type=float, metavar="S", help="simulated time [s] (with --input)")
     sim.add_argument("--dt", type=float, default=1e-4, metavar="S", help="integration step [s] (1e-4)")
-    sim.add_argument("--rate", type=float, default=1000.0, metavar="HZ", help="output sample rate [Hz] (1000)")
+    sim.add_argument(
+        "--rate", type=float, default=1000.0, metavar="HZ", help="output sample rate [Hz] (1000)"
+    )
     sim.add_argument(
         "--mode",
         choices=("voltage", "current", "torque"),

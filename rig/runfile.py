@@ -22,6 +22,7 @@ import pyarrow.csv as pa_csv
 import pyarrow.parquet as pq
 import scipy.io
 
+from model.errors import UserInputError
 from model.run import KNOWN_COLUMNS, Run, RunFormatError
 
 WRITE_SUFFIXES = (".parquet", ".csv", ".mat")
@@ -30,7 +31,7 @@ _MATLAB_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}")
 _MAT_META_VARIABLE = "meta"
 
 
-class RunFileError(ValueError):
+class RunFileError(UserInputError):
     """A run file cannot be read or written; the one-line message names the file and what is wrong."""
 
 

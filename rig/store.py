@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import pyarrow.parquet as pq
 
+from model.errors import UserInputError
 from model.run import Run, RunFormatError
 from rig.runfile import json_text, ordered_columns, read_parquet, write_parquet, write_run
 
@@ -64,7 +65,7 @@ CREATE INDEX IF NOT EXISTS runs_started ON runs (started);
 """
 
 
-class UnknownRunError(ValueError):
+class UnknownRunError(UserInputError):
     """No run with this id in the catalog."""
 
 
@@ -195,8 +196,9 @@ class RunStore:
         with self._db() as db:
             row = self._row(db, run_id)
         write_parquet(columns, self._run_meta(row), run_dir / DATA_FILE)
-        # Parts go only after the data file is in place; a reader meanwhile prefers the data file.
-        for part in parts:
+        # Parts go only after the data file is in place; a reader meanwhile prefers the data file. A writer
+        # killed mid-flush also leaves its temporary part behind.
+        for part in [*parts, *run_dir.glob(".part-*.tmp")]:
             part.unlink(missing_ok=True)
         return len(columns["t"]), f"runs/{run_id}/{DATA_FILE}"
 
