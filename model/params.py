@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from model.errors import UserInputError
+from model.errors import UserInputError, describe_validation_error
 
 N_FOURIER = 10
 """Harmonics of the periodic Coulomb part: a0..a10 (11 values) and b1..b10 (10 values)."""
@@ -347,16 +347,6 @@ def preset_names() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
 
 
-def _first_error(exc: ValidationError) -> str:
-    err = exc.errors()[0]
-    where = ".".join(str(p) for p in err["loc"]) or "(top level)"
-    msg = err["msg"].removeprefix("Value error, ")
-    value = err.get("input")
-    shown = "" if isinstance(value, dict | list) or value is None else f" (got {value!r})"
-    more = f" [+{exc.error_count() - 1} more]" if exc.error_count() > 1 else ""
-    return f"field '{where}': {msg}{shown}{more}"
-
-
 def parse_model(data: Any, source: str = "model") -> HarmonicDriveModel:
     """Validate plain data as a model; errors name `source` and the field."""
     if not isinstance(data, dict):
@@ -366,7 +356,7 @@ def parse_model(data: Any, source: str = "model") -> HarmonicDriveModel:
     try:
         return HarmonicDriveModel.model_validate(data)
     except ValidationError as exc:
-        raise ModelFileError(f"{source}: {_first_error(exc)}") from None
+        raise ModelFileError(f"{source}: {describe_validation_error(exc)}") from None
 
 
 def load_model(name_or_path: str | Path) -> HarmonicDriveModel:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from model import kernel as k
 from model.params import N_FOURIER, HarmonicDriveModel
@@ -140,9 +141,9 @@ class Plant:
 
     def advance(
         self,
-        drive: np.ndarray,
+        drive: ArrayLike,
         mode: InputMode = "voltage",
-        tau_ext: np.ndarray | float = 0.0,
+        tau_ext: ArrayLike = 0.0,
         dt_s: float = 1e-4,
         decim: int = 1,
         out: np.ndarray | None = None,
@@ -158,7 +159,7 @@ class Plant:
         rows = k.integrate(self.p, self.flags, self.x, MODES[mode], drive, load, dt_s, decim, out)
         return out[:rows]
 
-    def steady_friction(self, theta_m: np.ndarray, omega_m: np.ndarray) -> np.ndarray:
+    def steady_friction(self, theta_m: ArrayLike, omega_m: ArrayLike) -> np.ndarray:
         """Moving-branch motor friction F_m [N·m] at positions [rad] and nonzero velocities [rad/s].
 
         Evaluated with no transmitted torque and at time zero (load-dependent and thermal effects off).
@@ -169,7 +170,7 @@ class Plant:
             omega.shape
         )
 
-    def breakaway_friction(self, theta_m: np.ndarray, direction: float = 1.0) -> np.ndarray:
+    def breakaway_friction(self, theta_m: ArrayLike, direction: float = 1.0) -> np.ndarray:
         """Static motor friction f_sm [N·m] at positions [rad], for a push in `direction`."""
         theta = np.ascontiguousarray(np.atleast_1d(theta_m), dtype=np.float64)
         return k.static_motor_friction(self.p, self.flags, theta, float(direction), 0.0, 0.0)

@@ -1,0 +1,269 @@
+"""The one rig interface. Every backend — simulated in-process, CANopen + serial DAQ, their twins on a
+virtual bus — is a `Rig`; nothing above this module knows which one it has.
+
+As python-can's `BusABC` does for `recv`, the public `run_segment` does the shared work (checking the
+segment against the envelope, chunking, handing blocks to the sink, quick-stopping on a breach) and
+calls one small hook, `_run_cycles`, that each backend implements. Backends register under the
+`backend:` name of a rig config (`register_backend`), never through `if` chains.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from model.errors import UserInputError
+from rig.config import RigConfig
+from rig.safety import ABORT_REASONS, NO_ABORT
+
+
+class ControlMode(StrEnum):
+    """What a segment commands: motor voltage, motor current, motor speed or motor position."""
+
+    VOLTAGE = "voltage"
+    CURRENT = "current"
+    VELOCITY = "velocity"
+    POSITION = "position"
+
+
+SETPOINT_UNIT = {"voltage": "V", "current": "A", "velocity": "rad/s", "position": "rad"}
+
+SAMPLE_COLUMNS = ("t", "u", "i_cmd", "tau_ext", "theta_m", "omega_m", "theta_l", "i_a", "setpoint")
+"""What a rig records each cycle. `u` is the motor voltage applied, `i_cmd` the current the drive
+commanded (both always present: a drive knows both), `setpoint` the segment's set-point."""
+
+
+class RigError(UserInputError):
+    """A command the rig refuses (out of its limits, rig not enabled...)."""
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One stretch of an experiment: a mode, one set-point per cycle, the load torque per cycle."""
+
+    mode: ControlMode
+    setpoint: np.ndarray
+    tau_ext: np.ndarray | float = 0.0
+    label: str = ""
+
+    @property
+    def cycles(self) -> int:
+        return int(self.setpoint.shape[0])
+
+
+@dataclass
+class Health:
+    """What the rig says of itself: enabled, faults, the reason of the last abort."""
+
+    enabled: bool
+    faults: list[str] = field(default_factory=list)
+    last_abort: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return not self.faults
+
+
+Block = dict[str, np.ndarray]
+BlockSink = Callable[[Block], None]
+ProgressCallback = Callable[[float], None]
+"""Called with the fraction of the segment done, 0..1."""
+
+
+@dataclass(frozen=True)
+class SegmentResult:
+    cycles: int
+    aborted: str | None = None
+
+
+class Rig(ABC):
+    """A test bench seen by the experiments: commands in, timestamped samples out, within limits."""
+
+    def __init__(self, config: RigConfig) -> None:
+        self.config = config
+        self.period_s = 1.0 / config.sample_rate_hz
+        self._enabled = False
+        self._last_abort: str | None = None
+        self._stop_requested = threading.Event()
+        self.t_s = 0.0  # rig clock: time of the next sample [s]
+
+    # --- the promises every backend keeps ---------------------------------------------------------
+
+    def enable(self) -> None:
+        """Power the drive (CiA 402: OPERATION ENABLED). Clears a previous quick stop."""
+        self._stop_requested.clear()
+        self._enable()
+        self._enabled = True
+
+    def disable(self) -> None:
+        """Orderly stop: ramp to zero and remove power."""
+        if self._enabled:
+            self._disable()
+        self._enabled = False
+
+    def quick_stop(self) -> None:
+        """Defensive stop: always safe to call, from any thread, any number of times, in any state."""
+        self._stop_requested.set()
+        self._quick_stop()
+        self._enabled = False
+
+    def health(self) -> Health:
+        return Health(enabled=self._enabled, faults=self._faults(), last_abort=self._last_abort)
+
+    def close(self) -> None:
+        """Release the bus/port/plant; quick-stops first if still enabled."""
+        if self._enabled:
+            self.quick_stop()
+        self._close()
+
+    def __enter__(self) -> Rig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def run_segment(
+        self,
+        segment: Segment,
+        sink: BlockSink,
+        progress: ProgressCallback | None = None,
+        chunk_s: float = 0.25,
+    ) -> SegmentResult:
+        """Run a segment cycle by cycle; each block of samples goes to `sink` as it is taken.
+
+        A breach of the envelope quick-stops the rig and returns the reason in `aborted` (the samples
+        up to and including the breaching one have already reached the sink). `quick_stop()` from
+        another thread ends the segment the same way.
+        """
+        if not self._enabled:
+            raise RigError(f"rig {self.config.name!r} is not enabled: call enable() first")
+        self._check_segment(segment)
+        tau = np.broadcast_to(np.asarray(segment.tau_ext, dtype=np.float64), (segment.cycles,))
+        chunk = max(1, round(chunk_s / self.period_s))
+        done = 0
+        while done < segment.cycles:
+            if self._stop_requested.is_set():
+                return self._abort(SegmentResult(done, "aborted: quick stop requested"))
+            n = min(chunk, segment.cycles - done)
+            block, code = self._run_cycles(
+                segment.mode, segment.setpoint[done : done + n], tau[done : done + n]
+            )
+            got = len(block["t"])
+            done += got
+            if got:
+                sink(block)
+            if progress is not None:
+                progress(done / segment.cycles)
+            if code != NO_ABORT:
+                return self._abort(SegmentResult(done, "aborted: " + self._describe_breach(code, block)))
+        return SegmentResult(done)
+
+    # --- what a backend implements ------------------------------------------------------------------
+
+    @abstractmethod
+    def _run_cycles(self, mode: ControlMode, setpoint: np.ndarray, tau_ext: np.ndarray) -> tuple[Block, int]:
+        """Run len(setpoint) cycles; return the samples taken (SAMPLE_COLUMNS) and an abort code.
+
+        Must check the envelope every cycle with `rig.safety.envelope_breach` and stop at the first
+        breach, returning the samples up to and including it.
+        """
+
+    @abstractmethod
+    def _enable(self) -> None: ...
+
+    @abstractmethod
+    def _disable(self) -> None: ...
+
+    @abstractmethod
+    def _quick_stop(self) -> None:
+        """Must not raise and must be safe to call again; the drive must end without torque."""
+
+    def _faults(self) -> list[str]:
+        return []
+
+    def _close(self) -> None:
+        return None
+
+    # --- shared helpers ---------------------------------------------------------------------------------
+
+    def _abort(self, result: SegmentResult) -> SegmentResult:
+        self.quick_stop()
+        self._last_abort = result.aborted
+        return result
+
+    def _describe_breach(self, code: int, block: Block) -> str:
+        last = {name: float(values[-1]) for name, values in block.items() if len(values)}
+        limits = self.config.limits
+        what = {
+            "current": f"|i_a| = {abs(last.get('i_a', math.nan)):.3g} A > {limits.current_a} A",
+            "voltage": f"|u| = {abs(last.get('u', math.nan)):.3g} V > {limits.voltage_v} V",
+            "velocity": f"|omega_m| = {abs(last.get('omega_m', math.nan)):.4g} rad/s"
+            f" > {limits.velocity_rad_s} rad/s",
+            "travel": f"output angle {last.get('theta_m', math.nan) * self._gear_ratio():.4g} rad outside"
+            f" [{limits.travel_min_out_rad}, {limits.travel_max_out_rad}]",
+            "following": f"position error beyond {limits.following_error_out_rad} rad at the output",
+        }[ABORT_REASONS[code]]
+        return f"{ABORT_REASONS[code]} limit: {what} at t = {last.get('t', math.nan):.4f} s"
+
+    def _gear_ratio(self) -> float:
+        """Output/input ratio used to express travel at the output; backends that know it override."""
+        return 1.0
+
+    def _check_segment(self, segment: Segment) -> None:
+        sp = np.asarray(segment.setpoint)
+        if sp.ndim != 1 or sp.shape[0] == 0 or not np.all(np.isfinite(sp)):
+            raise RigError(f"segment {segment.label!r}: set-points must be a non-empty finite 1-D array")
+        limits, control = self.config.limits, self.config.control
+        peak = float(np.max(np.abs(sp)))
+        bound = {
+            ControlMode.VOLTAGE: control.supply_voltage_v,
+            ControlMode.CURRENT: control.current_limit_a,
+            ControlMode.VELOCITY: control.max_velocity_rad_s,
+        }.get(segment.mode)
+        if bound is not None and peak > bound:
+            unit = SETPOINT_UNIT[segment.mode]
+            raise RigError(
+                f"segment {segment.label!r}: {segment.mode} set-point {peak:g} {unit}"
+                f" beyond the rig's {bound:g} {unit}"
+            )
+        if segment.mode == ControlMode.POSITION:
+            out = sp * self._gear_ratio()
+            if out.min() < limits.travel_min_out_rad or out.max() > limits.travel_max_out_rad:
+                raise RigError(
+                    f"segment {segment.label!r}: position set-points reach output angles"
+                    f" [{out.min():.3g}, {out.max():.3g}] rad, outside the travel"
+                    f" [{limits.travel_min_out_rad}, {limits.travel_max_out_rad}]"
+                )
+
+
+RigFactory = Callable[[RigConfig], Rig]
+_BACKENDS: dict[str, RigFactory] = {}
+
+
+def register_backend(name: str, factory: RigFactory) -> None:
+    """Make a backend available under a rig config's `backend:` name."""
+    _BACKENDS[name] = factory
+
+
+def open_rig(config: RigConfig) -> Rig:
+    """The backend a rig config names, constructed on it."""
+    _load_builtin_backends()
+    try:
+        factory = _BACKENDS[config.backend]
+    except KeyError:
+        known = ", ".join(sorted(_BACKENDS))
+        raise RigError(
+            f"rig {config.name!r}: unknown backend {config.backend!r} (backends: {known})"
+        ) from None
+    return factory(config)
+
+
+def _load_builtin_backends() -> None:
+    # Importing a backend package registers it; imported here so that `rig` does not depend on them.
+    import sim_backend  # noqa: F401

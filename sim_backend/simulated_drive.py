@@ -1,0 +1,192 @@
+"""A simulated servo drive around the plant: its loops, its sensors, its envelope — compiled, per cycle.
+
+Each cycle: measure (encoder quantization, filtered encoder-difference speed, current and output-angle
+noise), check the envelope, compute the command (voltage as given; current as given or from the
+velocity/position loops, limited by what the bus voltage can push), record the sample, then integrate
+the plant over the cycle with that command held. The in-process backend and the CANopen twin both use
+it, so the simulated drive behaves the same whichever way it is reached.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from model import kernel as k
+from model.plant import Plant
+from rig.config import RigConfig
+from rig.control import N_CONTROL_STATE, S_PREV_POSITION_REF, gains_vector, position_p, velocity_pi
+from rig.interface import SAMPLE_COLUMNS, ControlMode
+from rig.safety import NO_ABORT, envelope_breach, limits_vector
+
+MODE_CODES = {
+    ControlMode.VOLTAGE: 0,
+    ControlMode.CURRENT: 1,
+    ControlMode.VELOCITY: 2,
+    ControlMode.POSITION: 3,
+}
+C_T, C_U, C_I_CMD, C_TAU, C_THETA_M, C_OMEGA_M, C_THETA_L, C_I_A, C_SETPOINT = range(len(SAMPLE_COLUMNS))
+
+# Drive constants vector: what the drive knows of its motor and bus, and its sensors.
+D_K_B, D_R, D_SUPPLY, D_QUANTUM, D_FILTER_ALPHA, D_CURRENT_NOISE, D_LOAD_NOISE, D_PERIOD = range(8)
+# Sensor state: last quantized position [rad], filtered speed [rad/s].
+M_THETA_PREV, M_OMEGA = range(2)
+
+
+@njit(cache=True)
+def run_cycles(
+    p: np.ndarray,
+    flags: np.ndarray,
+    x: np.ndarray,
+    drive: np.ndarray,
+    gains: np.ndarray,
+    control_state: np.ndarray,
+    sensor_state: np.ndarray,
+    lim: np.ndarray,
+    mode: int,
+    setpoint: np.ndarray,
+    tau_ext: np.ndarray,
+    noise: np.ndarray,
+    substeps: int,
+    dt: float,
+    t0: float,
+    out: np.ndarray,
+) -> tuple[int, int]:
+    """Run len(setpoint) cycles from time t0; fill `out` rows (SAMPLE_COLUMNS). Returns (rows, abort)."""
+    period = drive[D_PERIOD]
+    quantum = drive[D_QUANTUM]
+    held = np.empty(substeps)
+    load = np.empty(1)
+    row_buf = np.empty((1, k.N_OUT))
+    for c in range(setpoint.shape[0]):
+        theta = x[k.X_THETA_M]
+        theta_meas = math.floor(theta / quantum + 0.5) * quantum if quantum > 0.0 else theta
+        raw_speed = (theta_meas - sensor_state[M_THETA_PREV]) / period
+        sensor_state[M_THETA_PREV] = theta_meas
+        sensor_state[M_OMEGA] += drive[D_FILTER_ALPHA] * (raw_speed - sensor_state[M_OMEGA])
+        omega_meas = sensor_state[M_OMEGA]
+
+        sp = setpoint[c]
+        position_error = 0.0
+        if mode == 0:
+            u = sp
+            i_true = (u - p[k.K_B] * x[k.X_OMEGA_M]) / p[k.R_ARM]
+            i_cmd = i_true
+            plant_mode = k.MODE_VOLTAGE
+            value = u
+        else:
+            if mode == 1:
+                i_cmd = sp
+            elif mode == 2:
+                i_cmd = velocity_pi(gains, control_state, sp, omega_meas, period)
+            else:
+                position_error = sp - theta_meas
+                omega_ref = position_p(gains, control_state, sp, theta_meas, period)
+                i_cmd = velocity_pi(gains, control_state, omega_ref, omega_meas, period)
+            # The bus voltage bounds the current the drive can push at this speed.
+            back_emf = drive[D_K_B] * omega_meas
+            i_hi = (drive[D_SUPPLY] - back_emf) / drive[D_R]
+            i_lo = (-drive[D_SUPPLY] - back_emf) / drive[D_R]
+            i_cmd = min(max(i_cmd, i_lo), i_hi)
+            u = drive[D_R] * i_cmd + back_emf
+            i_true = i_cmd
+            plant_mode = k.MODE_CURRENT
+            value = i_cmd
+        i_meas = i_true + drive[D_CURRENT_NOISE] * noise[c, 0]
+
+        out[c, C_T] = t0 + c * period
+        out[c, C_U] = u
+        out[c, C_I_CMD] = i_cmd
+        out[c, C_TAU] = tau_ext[c]
+        out[c, C_THETA_M] = theta_meas
+        out[c, C_OMEGA_M] = omega_meas
+        out[c, C_THETA_L] = x[k.X_THETA_L] + drive[D_LOAD_NOISE] * noise[c, 1]
+        out[c, C_I_A] = i_meas
+        out[c, C_SETPOINT] = sp
+        code = envelope_breach(lim, u, i_meas, omega_meas, theta_meas, position_error)
+        if code != NO_ABORT:
+            return c + 1, code
+
+        held[:] = value
+        load[0] = tau_ext[c]
+        k.integrate(p, flags, x, plant_mode, held, load, dt, substeps, row_buf)
+    return setpoint.shape[0], NO_ABORT
+
+
+class SimulatedDrive:
+    """The plant plus a drive's loops and sensors; stepped a block of cycles at a time."""
+
+    def __init__(self, plant: Plant, config: RigConfig) -> None:
+        self.plant = plant
+        self.config = config
+        period = 1.0 / config.sample_rate_hz
+        self.substeps = max(1, round(period / config.sim_dt_s))
+        self.dt_s = period / self.substeps
+        sensors, motor = config.sensors, plant.model.motor
+        quantum = 2 * math.pi / sensors.encoder_counts_per_rev if sensors.encoder_counts_per_rev else 0.0
+        alpha = (
+            1.0 - math.exp(-2 * math.pi * sensors.velocity_filter_hz * period)
+            if sensors.velocity_filter_hz
+            else 1.0
+        )
+        self.drive = np.array(
+            [
+                motor.K_b,
+                motor.R,
+                config.control.supply_voltage_v,
+                quantum,
+                alpha,
+                sensors.current_noise_a,
+                sensors.load_sensor_noise_rad,
+                period,
+            ]
+        )
+        self.gains = gains_vector(config.control)
+        self.limits = limits_vector(config.limits, plant.model.mechanics.r)
+        self.control_state = np.zeros(N_CONTROL_STATE)
+        self.sensor_state = np.zeros(2)
+        self.rng = np.random.default_rng(sensors.seed)
+        self.reset_loops()
+
+    def reset_loops(self) -> None:
+        """Clear integrators and filters, as a drive does on enable; no bump in the speed estimate."""
+        theta = float(self.plant.x[k.X_THETA_M])
+        quantum = self.drive[D_QUANTUM]
+        self.sensor_state[M_THETA_PREV] = math.floor(theta / quantum + 0.5) * quantum if quantum else theta
+        self.sensor_state[M_OMEGA] = float(self.plant.x[k.X_OMEGA_M])
+        self.control_state[:] = 0.0
+        self.control_state[S_PREV_POSITION_REF] = self.sensor_state[M_THETA_PREV]
+        self._mode: ControlMode | None = None
+
+    def run(
+        self, mode: ControlMode, setpoint: np.ndarray, tau_ext: np.ndarray, t0: float
+    ) -> tuple[np.ndarray, int]:
+        """Run the cycles; return the sample rows taken and the abort code."""
+        n = setpoint.shape[0]
+        if mode != self._mode:
+            # Entering a mode, the position loop's feed-forward starts from where the motor is.
+            self.control_state[S_PREV_POSITION_REF] = self.sensor_state[M_THETA_PREV]
+            self._mode = mode
+        out = np.empty((n, len(SAMPLE_COLUMNS)))
+        noise = self.rng.standard_normal((n, 2))
+        rows, code = run_cycles(
+            self.plant.p,
+            self.plant.flags,
+            self.plant.x,
+            self.drive,
+            self.gains,
+            self.control_state,
+            self.sensor_state,
+            self.limits,
+            MODE_CODES[mode],
+            np.ascontiguousarray(setpoint, dtype=np.float64),
+            np.ascontiguousarray(tau_ext, dtype=np.float64),
+            noise,
+            self.substeps,
+            self.dt_s,
+            t0,
+            out,
+        )
+        return out[:rows], code
