@@ -13,6 +13,10 @@ Prints tables, asserts nothing. What it measures:
    (simulated seconds per wall second × 10 kHz).
 3. Accuracy against fine references sampled at 1 kHz: the kernel at dt = 1e-6 s, and solve_ivp at
    rtol = 1e-10 on its own right-hand side (so the solver's error is seen apart from the model gap).
+   Matching: per solve_ivp method, the tightest tolerance whose θ_m and θ_l RMS errors are both still
+   ≥ the kernel's at dt = 1e-4 (the kernel is then at equal or better accuracy); the speedup is the
+   ratio of equivalent rates. The verdict uses the solver's own error: against the kernel reference
+   every ODE run is floored by the missing static friction, which is a model gap, not solver error.
 
 The whole process is pinned to one CPU: the kernel is a single-threaded loop (no prange), so its rate
 is a one-core figure, and solve_ivp gets the same core.
@@ -78,7 +82,7 @@ def drive_samples(n_steps: int, dt_s: float) -> NDArray[np.float64]:
 
 
 def sample_times(duration_s: float) -> NDArray[np.float64]:
-    return SAMPLE_S * np.arange(round(duration_s / SAMPLE_S))
+    return SAMPLE_S * np.arange(round(duration_s / SAMPLE_S), dtype=np.float64)
 
 
 # --- the compiled kernel ----------------------------------------------------------------------------
@@ -405,9 +409,9 @@ def bench_accuracy(model: HarmonicDriveModel) -> list[Row]:
     )
     print(f"   {'run':22s} {'rtol':6s} {'wall':>8s} {'steps/s':>10s} |  {head} |  {head}")
     for row in rows:
-        rtol = f"{row.rtol:.0e}" if row.rtol is not None else "-"
+        rtol_cell = f"{row.rtol:.0e}" if row.rtol is not None else "-"
         print(
-            f"   {row.label:22s} {rtol:6s} {row.wall_s:7.4f}s {fmt_rate(row.equiv_rate):>10s} |"
+            f"   {row.label:22s} {rtol_cell:6s} {row.wall_s:7.4f}s {fmt_rate(row.equiv_rate):>10s} |"
             f" {row.vs_kernel_ref.cells()} | {row.vs_own_ref.cells()}"
         )
     print("   equiv steps/s = simulated s per wall s × 10 kHz; kernel rows: own reference = kernel reference")
@@ -483,12 +487,11 @@ def print_matches(rows: list[Row], base: Row, base_rate: float, basis: Basis) ->
 def print_targets(kernel_rate: float, rows: list[Row]) -> None:
     coarse, fine = rows[0], rows[1]
     assert coarse.method == fine.method == "kernel"
-    print(
-        "4. Matched accuracy: against each method, its fastest run that is no more accurate than the kernel"
-    )
+    print("4. Matched accuracy: per method, the tightest rtol whose error is still ≥ the kernel's")
     solver = print_matches(rows, coarse, kernel_rate, "solver")
-    literal = print_matches(rows, coarse, kernel_rate, "kernel")
     print_matches(rows, fine, fine.equiv_rate, "solver")
+    literal = print_matches(rows, coarse, kernel_rate, "kernel")
+    print("     (every run is floored by the model gap on this basis: the pick is the tightest rtol tried)")
     print()
 
     def verdict(ok: bool) -> str:
@@ -497,7 +500,7 @@ def print_targets(kernel_rate: float, rows: list[Row]) -> None:
     def worst(matches: list[Match]) -> float:
         return min((m.speedup for m in matches if m.row is not None), default=math.inf)
 
-    print("Targets (kernel at dt = 1e-4; speedups on the solver-error basis)")
+    print("Targets (kernel at dt = 1e-4; speedups at matched solver error, section 4 first block)")
     print(f"   {'target':52s} {'figure':30s} verdict")
     print(
         f"   {'≥ 10 M steps/s on one core (C loop: ~20 M here)':52s}"

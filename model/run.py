@@ -57,7 +57,14 @@ class Run:
 
     @property
     def input_column(self) -> str | None:
-        """The column that drives the plant (`u`, `i_cmd` or `tau_m`), or None if there is none."""
+        """The column that drives the plant (`u`, `i_cmd` or `tau_m`), or None if there is none.
+
+        A run that records several (a rig logs both the voltage and the current command) names the
+        one that drove it in its `input_column` metadata; otherwise the first present in INPUT_COLUMNS.
+        """
+        named = self.meta.get("input_column")
+        if named in INPUT_COLUMNS and named in self.columns:
+            return str(named)
         return next((c for c in INPUT_COLUMNS if c in self.columns), None)
 
     @property

@@ -19,6 +19,7 @@ from enum import StrEnum
 import numpy as np
 
 from model.errors import UserInputError
+from model.params import HarmonicDriveModel
 from rig.config import RigConfig
 from rig.safety import ABORT_REASONS, NO_ABORT
 
@@ -205,15 +206,27 @@ class Rig(ABC):
             "voltage": f"|u| = {abs(last.get('u', math.nan)):.3g} V > {limits.voltage_v} V",
             "velocity": f"|omega_m| = {abs(last.get('omega_m', math.nan)):.4g} rad/s"
             f" > {limits.velocity_rad_s} rad/s",
-            "travel": f"output angle {last.get('theta_m', math.nan) * self._gear_ratio():.4g} rad outside"
+            "travel": f"output angle {last.get('theta_m', math.nan) * self.gear_ratio:.4g} rad outside"
             f" [{limits.travel_min_out_rad}, {limits.travel_max_out_rad}]",
             "following": f"position error beyond {limits.following_error_out_rad} rad at the output",
         }[ABORT_REASONS[code]]
         return f"{ABORT_REASONS[code]} limit: {what} at t = {last.get('t', math.nan):.4f} s"
 
-    def _gear_ratio(self) -> float:
-        """Output/input ratio used to express travel at the output; backends that know it override."""
-        return 1.0
+    @property
+    @abstractmethod
+    def gear_ratio(self) -> float:
+        """Output/input ratio r of the transmission on the bench (0.01 for 100:1)."""
+
+    @property
+    @abstractmethod
+    def torque_constant_nm_per_a(self) -> float:
+        """Motor torque per ampere, to turn measured current into torque [N·m/A]."""
+
+    source: str = "hardware"
+    """What CONTRACT.md's `source` metadata says of this rig's runs: `sim` or `hardware`."""
+
+    model: HarmonicDriveModel | None = None
+    """The model a simulated rig runs (None on hardware): recorded with each run."""
 
     def _check_segment(self, segment: Segment) -> None:
         sp = np.asarray(segment.setpoint)
@@ -233,7 +246,7 @@ class Rig(ABC):
                 f" beyond the rig's {bound:g} {unit}"
             )
         if segment.mode == ControlMode.POSITION:
-            out = sp * self._gear_ratio()
+            out = sp * self.gear_ratio
             if out.min() < limits.travel_min_out_rad or out.max() > limits.travel_max_out_rad:
                 raise RigError(
                     f"segment {segment.label!r}: position set-points reach output angles"

@@ -425,6 +425,13 @@ class RunWriter:
             )
         self.closed = True
 
+    def update_meta(self, extra: dict[str, Any]) -> None:
+        """Merge keys into the run's metadata (e.g. what is known only once the run has started)."""
+        with self.store._db() as db:
+            meta = json.loads(self.store._row(db, self.run_id)["meta"])
+            meta.update(extra)
+            db.execute("UPDATE runs SET meta = ? WHERE id = ?", (json_text(meta), self.run_id))
+
     def __enter__(self) -> RunWriter:
         return self
 

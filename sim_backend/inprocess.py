@@ -18,13 +18,20 @@ class SimRig(Rig):
 
     def __init__(self, config: RigConfig, model: HarmonicDriveModel | None = None) -> None:
         super().__init__(config)
-        self.model = model if model is not None else load_model(config.model or "seed")
+        self.model: HarmonicDriveModel = model if model is not None else load_model(config.model or "seed")
         self.plant = Plant(self.model)
         self.drive = SimulatedDrive(self.plant, config)
         self._wall_start: float | None = None
 
-    def _gear_ratio(self) -> float:
+    source = "sim"
+
+    @property
+    def gear_ratio(self) -> float:
         return self.model.mechanics.r
+
+    @property
+    def torque_constant_nm_per_a(self) -> float:
+        return self.model.motor.K_m
 
     def _enable(self) -> None:
         self.drive.reset_loops()

@@ -1,0 +1,90 @@
+"""What an experiment is: validated parameters, a program of segments, an analysis, plots.
+
+An experiment never touches a backend or the store: the runner (`rig.runner`) plays its program on
+a rig, records the run, then hands the recorded run back to `analyze` and `plot`. So the same
+experiment runs on the simulator, the twins and the hardware, and can be re-analyzed from a stored run.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from model.run import Run
+from rig.config import RigConfig
+from rig.interface import Segment
+
+
+class ExperimentParams(BaseModel):
+    """Base of every experiment's parameters: unknown keys are refused, values validated with units."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+@dataclass(frozen=True)
+class RigContext:
+    """What an experiment may know of the bench when it builds its program or analyzes a run."""
+
+    config: RigConfig
+    gear_ratio: float  # r, output/input
+    torque_constant_nm_per_a: float  # K_m
+    theta_m0: float  # motor position when the program starts [rad]
+
+    @property
+    def rate_hz(self) -> float:
+        return self.config.sample_rate_hz
+
+    def cycles(self, duration_s: float) -> int:
+        """Whole control cycles in a duration (at least one)."""
+        return max(1, round(duration_s * self.config.sample_rate_hz))
+
+
+@dataclass
+class Results:
+    """What an analysis derives from a run.
+
+    `metrics`: scalar figures (stored in the catalog, printed by the CLI); `tables`: named columns of
+    equal length (each saved as `<name>.csv` beside the run); `notes`: lines a person should read.
+    """
+
+    metrics: dict[str, float | int | str] = field(default_factory=dict)
+    tables: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+
+def segment_rows(run: Run, label: str) -> slice:
+    """Rows of `run` recorded during the segment named `label` (from the run's `segments` metadata)."""
+    for seg in run.meta.get("segments", []):
+        if seg["label"] == label:
+            return slice(int(seg["start"]), int(seg["start"]) + int(seg["cycles"]))
+    raise KeyError(f"run has no segment {label!r}")
+
+
+def segments_of(run: Run, prefix: str = "") -> list[dict[str, Any]]:
+    """The run's segment records (label, mode, start row, cycles), those whose label starts with prefix."""
+    return [seg for seg in run.meta.get("segments", []) if str(seg["label"]).startswith(prefix)]
+
+
+class Experiment(ABC):
+    """One of the article's experiments. Subclasses set `name`, `Params`, and implement the three steps."""
+
+    name: ClassVar[str]
+    summary: ClassVar[str]
+    Params: ClassVar[type[ExperimentParams]]
+
+    @abstractmethod
+    def program(self, params: Any, ctx: RigContext) -> list[Segment]:
+        """The segments to play, in order, from rest at ctx.theta_m0. Labels must be unique."""
+
+    @abstractmethod
+    def analyze(self, run: Run, params: Any, ctx: RigContext) -> Results:
+        """Derived results from the recorded run (its `segments` metadata says which rows are which)."""
+
+    def plot(self, run: Run, results: Results, params: Any, ctx: RigContext, out_dir: Path) -> list[Path]:
+        """PNG files a person wants to look at; written into out_dir. Default: none."""
+        return []

@@ -1,0 +1,232 @@
+"""Plays an experiment on a rig into the store, then analyzes it. The CLI and the service both call this.
+
+Flow: open the rig named by the config → enable → a short settle segment to read where the motor is →
+the experiment's program, segment by segment, each block of samples appended to the store as it comes
+(flushed at least once a second) → on a breach the run is finished `aborted: <reason>` with its data →
+otherwise `complete`, then the analysis writes tables, plots and metrics beside the run.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from pydantic import ValidationError
+
+from model.errors import UserInputError, describe_validation_error
+from rig.config import RigConfig
+from rig.experiments import CAMPAIGN_ORDER, EXPERIMENTS
+from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext
+from rig.interface import SAMPLE_COLUMNS, ControlMode, Rig, Segment, open_rig
+from rig.runfile import json_text
+from rig.store import RunStore
+
+SETTLE_S = 0.2
+Progress = Callable[[str, float], None]
+"""Called with a label (experiment or segment) and the fraction of the whole job done, 0..1."""
+
+
+@dataclass
+class RunOutcome:
+    """One experiment's run: where it is, how it ended, what it measured."""
+
+    run_id: str
+    experiment: str
+    status: str
+    reason: str | None = None
+    metrics: dict[str, Any] = field(default_factory=dict)
+    artifacts: list[Path] = field(default_factory=list)
+    run_dir: Path | None = None
+
+
+def parse_overrides(experiment: str, pairs: Sequence[str]) -> dict[str, Any]:
+    """`--set key=value` pairs as a dict; values read as YAML scalars (numbers, lists, booleans)."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or not key.strip():
+            raise UserInputError(f"run {experiment}: --set {pair!r} is not key=value")
+        out[key.strip()] = yaml.safe_load(text)
+    return out
+
+
+def make_params(experiment: Experiment, overrides: dict[str, Any]) -> ExperimentParams:
+    try:
+        return experiment.Params.model_validate(overrides)
+    except ValidationError as exc:
+        raise UserInputError(f"run {experiment.name}: {describe_validation_error(exc)}") from None
+
+
+def _settle(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> float:
+    """Hold still briefly (velocity 0) and return the motor position it holds."""
+    last: dict[str, np.ndarray] = {}
+
+    def keep(block: dict[str, np.ndarray]) -> None:
+        last.update(block)
+        sink(block)
+
+    cycles = max(1, round(SETTLE_S * rig.config.sample_rate_hz))
+    rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(cycles), 0.0, "settle"), keep)
+    return float(last["theta_m"][-1])
+
+
+def _save_results(store: RunStore, run_id: str, results: Results) -> list[Path]:
+    paths = []
+    for name, table in results.tables.items():
+        path = store.add_artifact(run_id, f"{name}.csv")
+        names = list(table)
+        rows = np.column_stack([np.asarray(table[n], dtype=np.float64) for n in names])
+        np.savetxt(path, rows, delimiter=",", header=",".join(names), comments="", fmt="%.10g")
+        paths.append(path)
+    summary = store.add_artifact(run_id, "results.json")
+    summary.write_text(json_text({"metrics": results.metrics, "notes": results.notes}, indent=2) + "\n")
+    paths.append(summary)
+    return paths
+
+
+def run_experiment(
+    name: str,
+    config: RigConfig,
+    overrides: dict[str, Any] | None = None,
+    store: RunStore | None = None,
+    progress: Progress | None = None,
+    rig: Rig | None = None,
+) -> RunOutcome:
+    """Run one experiment on the rig `config` names (or on `rig`), store it, analyze it."""
+    if name not in EXPERIMENTS:
+        raise UserInputError(f"unknown experiment {name!r} (experiments: {', '.join(EXPERIMENTS)}, campaign)")
+    experiment = EXPERIMENTS[name]
+    params = make_params(experiment, overrides or {})
+    store = store or RunStore()
+    own_rig = rig is None
+    rig = rig or open_rig(config)
+    try:
+        return _play(experiment, params, rig, store, progress)
+    finally:
+        if own_rig:
+            rig.close()
+
+
+def _play(
+    experiment: Experiment, params: ExperimentParams, rig: Rig, store: RunStore, progress: Progress | None
+) -> RunOutcome:
+    config = rig.config
+    rig.enable()
+    columns = list(SAMPLE_COLUMNS)
+    model = rig.model
+    meta: dict[str, Any] = {
+        "sample_rate_hz": config.sample_rate_hz,
+        "source": rig.source,
+        "experiment": experiment.name,
+        "rig": config.name,
+        "params": params.model_dump(mode="json"),
+        "gear_ratio": rig.gear_ratio,
+        "torque_constant_nm_per_a": rig.torque_constant_nm_per_a,
+    }
+    writer = store.open_run(
+        experiment=experiment.name,
+        rig=config.name,
+        model_name=model.name if model else None,
+        model_hash=model.content_hash() if model else None,
+        columns=columns,
+        meta=meta,
+    )
+    with writer:
+        theta_m0 = _settle(rig, writer.append)
+        ctx = RigContext(config, rig.gear_ratio, rig.torque_constant_nm_per_a, theta_m0)
+        program = experiment.program(params, ctx)
+        labels = [seg.label for seg in program]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"experiment {experiment.name}: segment labels must be unique, got {labels}")
+        start = writer.samples
+        segments = []
+        for seg in program:
+            segments.append({"label": seg.label, "mode": str(seg.mode), "start": start, "cycles": seg.cycles})
+            start += seg.cycles
+        input_column = "u" if all(seg.mode == ControlMode.VOLTAGE for seg in program) else "i_cmd"
+        writer.update_meta({"segments": segments, "input_column": input_column, "theta_m0": theta_m0})
+        total = sum(seg.cycles for seg in program)
+        done = 0
+        for seg in program:
+            report = None
+            if progress is not None:
+                report = _segment_progress(progress, experiment.name, seg, done, total)
+            result = rig.run_segment(seg, writer.append, report)
+            done += seg.cycles
+            if result.aborted is not None:
+                writer.finish("aborted", reason=result.aborted)
+                return RunOutcome(
+                    writer.run_id, experiment.name, "aborted", result.aborted, run_dir=writer.run_dir
+                )
+        rig.disable()
+        writer.finish("complete")
+    run = store.read(writer.run_id)
+    results = experiment.analyze(run, params, ctx)
+    artifacts = _save_results(store, writer.run_id, results)
+    plot_dir = store.add_artifact(writer.run_id, "plots")
+    plot_dir.mkdir(parents=True, exist_ok=True)
+    artifacts += experiment.plot(run, results, params, ctx, plot_dir)
+    store.set_metrics(writer.run_id, results.metrics)
+    return RunOutcome(
+        writer.run_id, experiment.name, "complete", None, results.metrics, artifacts, run_dir=writer.run_dir
+    )
+
+
+def _segment_progress(
+    progress: Progress, name: str, seg: Segment, done: int, total: int
+) -> Callable[[float], None]:
+    def report(fraction: float) -> None:
+        progress(f"{name}: {seg.label}", (done + fraction * seg.cycles) / total)
+
+    return report
+
+
+def run_campaign(
+    config: RigConfig,
+    overrides: dict[str, dict[str, Any]] | None = None,
+    store: RunStore | None = None,
+    progress: Progress | None = None,
+    experiments: Sequence[str] = CAMPAIGN_ORDER,
+    on_outcome: Callable[[RunOutcome], None] | None = None,
+) -> list[RunOutcome]:
+    """Every experiment in turn, each on a fresh rig from rest, each its own run."""
+    store = store or RunStore()
+    outcomes = []
+    for index, name in enumerate(experiments):
+        report = None
+        if progress is not None:
+            report = _campaign_progress(progress, index, len(experiments))
+        outcome = run_experiment(name, config, (overrides or {}).get(name), store, report)
+        outcomes.append(outcome)
+        if on_outcome is not None:
+            on_outcome(outcome)
+    return outcomes
+
+
+def _campaign_progress(progress: Progress, index: int, count: int) -> Progress:
+    def report(label: str, fraction: float) -> None:
+        progress(label, (index + fraction) / count)
+
+    return report
+
+
+def outcome_json(outcome: RunOutcome) -> dict[str, Any]:
+    data: dict[str, Any] = json.loads(
+        json_text(
+            {
+                "id": outcome.run_id,
+                "experiment": outcome.experiment,
+                "status": outcome.status,
+                "reason": outcome.reason,
+                "metrics": outcome.metrics,
+                "run_dir": str(outcome.run_dir) if outcome.run_dir else None,
+                "artifacts": [str(p) for p in outcome.artifacts],
+            }
+        )
+    )
+    return data
