@@ -223,6 +223,8 @@ def integrate(
     nonlinear = flags[FL_NONLINEAR]
     hysteresis = flags[FL_HYSTERESIS]
     kinematic = flags[FL_KINEMATIC]
+    # The kinematic error's rate costs a cos per step; only damping, hysteresis and a rigid output use it.
+    needs_deflection_rate = rigid or hysteresis or p[D_S] != 0.0
     motor_smooth = motor_law in (LAW_LUGRE, LAW_DAHL)
     load_smooth = load_law in (LAW_LUGRE, LAW_DAHL)
     r = p[R_GEAR]
@@ -258,7 +260,8 @@ def integrate(
         if kinematic:
             phase = p[KE_K] * theta_m + p[KE_PHI]
             theta_err = p[KE_A] * math.sin(phase)
-            omega_err = p[KE_A] * p[KE_K] * math.cos(phase) * omega_m
+            if needs_deflection_rate:
+                omega_err = p[KE_A] * p[KE_K] * math.cos(phase) * omega_m
 
         if rigid:
             t_s = t_s_prev
