@@ -113,14 +113,29 @@ def replay(model: HarmonicDriveModel, run: Run, dt_s: float = 1e-4, diagnostics:
     Inputs are held between samples (as a digital drive holds them). Each sample interval is cut into
     equal steps no longer than `dt_s`, so irregular time bases from real hardware replay exactly.
     """
+    mode = replay_mode(run)
+    rows = replay_rows(Plant(model), run, mode, dt_s)
+    meta = _meta(model, run.sample_rate_hz, experiment="replay", input_mode=mode, dt_s=dt_s)
+    meta["replayed"] = {k_: run.meta[k_] for k_ in ("experiment", "source", "created") if k_ in run.meta}
+    return _run_from_rows(rows, mode, meta, diagnostics, t=run.t)
+
+
+def replay_mode(run: Run) -> InputMode:
+    """The input mode a run's input column implies; an error naming what is missing if none."""
     column = run.input_column
     if column is None:
         raise RunFormatError("run has no input column: replay needs one of u, i_cmd, tau_m")
-    mode = MODE_OF_COLUMN[column]
+    return MODE_OF_COLUMN[column]
+
+
+def replay_rows(plant: Plant, run: Run, mode: InputMode, dt_s: float) -> np.ndarray:
+    """Reset `plant` to the run's first state and drive it with the run's inputs; kernel rows per sample.
+
+    The plant is reused, so a fitter replaying many windows compiles the model into it only once.
+    """
     t = run.t
-    drive = run[column]
+    drive = run[INPUT_COLUMN[mode]]
     load = run["tau_ext"] if "tau_ext" in run else np.zeros(len(t))
-    plant = Plant(model)
     plant.reset(
         theta_m=float(run["theta_m"][0]),
         omega_m=float(run["omega_m"][0]) if "omega_m" in run else 0.0,
@@ -141,6 +156,4 @@ def replay(model: HarmonicDriveModel, run: Run, dt_s: float = 1e-4, diagnostics:
             rows[i] = plant.advance(np.full(n, drive[i]), mode, load[i : i + 1], float(h), n)[0]
     # The last sample: the state reached at the end, with the last input applied to it.
     rows[-1] = plant.advance(drive[-1:], mode, load[-1:], dt_s, 1)[0]
-    meta = _meta(model, run.sample_rate_hz, experiment="replay", input_mode=mode, dt_s=dt_s)
-    meta["replayed"] = {k_: run.meta[k_] for k_ in ("experiment", "source", "created") if k_ in run.meta}
-    return _run_from_rows(rows, mode, meta, diagnostics, t=t)
+    return rows

@@ -1,0 +1,1 @@
+"""Identification: fitting model parameters to runs (staged estimates, joint refinement, uncertainty)."""

@@ -1,0 +1,213 @@
+"""Joint refinement: all free parameters at once, by least squares on simulated-vs-measured trajectories.
+
+Closed-loop rig data replayed open loop drift away (friction integrates any error), so the residual is
+taken over short windows (multiple shooting): each window restarts the model from the measured state
+and replays the measured input over it. The cost is the article's "Euclidean norm between simulated
+and measured values", per channel scaled by the data's own spread so that radians and rad/s weigh alike.
+
+Uncertainty: the Gauss–Newton covariance s²·(JᵀJ)⁻¹ at the optimum. A parameter whose column of the
+scaled Jacobian is (nearly) a combination of the others, or whose standard error exceeds its own size,
+is reported as not determined by the data, and keeps its starting value.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from model import kernel as k
+from model.errors import UserInputError
+from model.fit.parameters import get_values, with_values
+from model.params import HarmonicDriveModel
+from model.plant import Plant
+from model.run import Run
+from model.simulate import replay_mode, replay_rows
+
+CHANNELS = {"theta_m": k.OUT_THETA_M, "omega_m": k.OUT_OMEGA_M, "theta_l": k.OUT_THETA_L}
+SIGNED = re.compile(r"s1|s2|a\d+|b\d+|k_v|phi|f_dir|d_th")
+"""Parameters that may take either sign; every other parameter of MODEL.md is positive."""
+
+
+@dataclass
+class ParameterEstimate:
+    name: str
+    start: float
+    estimate: float
+    std_error: float | None
+    identifiable: bool
+    note: str = ""
+
+
+@dataclass
+class TrajectoryFit:
+    model: HarmonicDriveModel
+    parameters: list[ParameterEstimate]
+    cost_before: float  # RMS of the scaled residual at the start
+    cost_after: float
+    residuals: int
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class _Window:
+    run: Run
+    channels: list[str]
+    scales: dict[str, float]
+
+
+def shooting_windows(run: Run, window_s: float) -> list[Run]:
+    """Cut a run into consecutive windows of about `window_s`, each a run of its own."""
+    t = run.t
+    edges = np.searchsorted(t, np.arange(t[0], t[-1], window_s))
+    edges = np.append(edges, len(t))
+    out = []
+    for start, stop in itertools.pairwise(edges):
+        if stop - start >= 3:
+            out.append(Run({c: v[start:stop] for c, v in run.columns.items()}, run.meta))
+    return out
+
+
+def _channel_scales(run: Run, channels: list[str], windows: list[Run]) -> dict[str, float]:
+    scales = {}
+    for ch in channels:
+        if ch == "omega_m":
+            spread = float(np.sqrt(np.mean(run[ch] ** 2)))
+        else:  # positions: how far they move within a window, not where they are
+            spread = float(np.sqrt(np.mean(np.concatenate([(w[ch] - w[ch][0]) ** 2 for w in windows]))))
+        scales[ch] = spread if spread > 0 else 1.0
+    return scales
+
+
+class TrajectoryProblem:
+    """Residuals of a model against runs over shooting windows, for a set of free parameters."""
+
+    def __init__(
+        self, model: HarmonicDriveModel, runs: list[Run], names: list[str], window_s: float, dt_s: float
+    ) -> None:
+        if not names:
+            raise UserInputError("a trajectory fit needs at least one free parameter")
+        self.model = model
+        self.names = names
+        self.dt_s = dt_s
+        self.start = get_values(model, names)
+        self.windows: list[_Window] = []
+        for run in runs:
+            channels = [c for c in CHANNELS if c in run]
+            pieces = shooting_windows(run, window_s)
+            scales = _channel_scales(run, channels, pieces)
+            self.windows += [_Window(piece, channels, scales) for piece in pieces]
+        if not self.windows:
+            raise UserInputError("no data long enough to fit on (windows of at least 3 samples)")
+        # Work in units of each parameter's own starting size, so steps and bounds are comparable.
+        self.x_scale = np.array([abs(v) if v != 0 else 1.0 for v in self.start.values()])
+
+    def values(self, x: np.ndarray) -> dict[str, float]:
+        return {name: float(xi * s) for name, xi, s in zip(self.names, x, self.x_scale, strict=True)}
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        try:
+            model = with_values(self.model, self.values(x))
+        except UserInputError:
+            # Outside the model's valid region (e.g. a negative inertia): a large, smooth penalty.
+            return np.full(self.size, 1e3)
+        plant = Plant(model)
+        parts = []
+        for w in self.windows:
+            rows = replay_rows(plant, w.run, replay_mode(w.run), self.dt_s)
+            for ch in w.channels:
+                parts.append((rows[:, CHANNELS[ch]] - w.run[ch]) / w.scales[ch])
+        return np.concatenate(parts)
+
+    @property
+    def size(self) -> int:
+        return sum(len(w.run) * len(w.channels) for w in self.windows)
+
+
+def fit_trajectories(
+    model: HarmonicDriveModel,
+    runs: list[Run],
+    names: list[str],
+    window_s: float = 0.1,
+    dt_s: float = 1e-4,
+    max_evaluations: int = 60,
+) -> TrajectoryFit:
+    """Refine the named parameters of `model` on the runs; estimates with standard errors."""
+    problem = TrajectoryProblem(model, runs, names, window_s, dt_s)
+    x0 = np.array([problem.start[n] for n in names]) / problem.x_scale
+    lower = np.array([-np.inf if SIGNED.fullmatch(n) else 0.0 for n in names])
+    x0 = np.maximum(x0, np.where(np.isfinite(lower), 1e-9, -np.inf))  # strictly inside the bounds
+    r0 = problem.residuals(x0)
+    # Friction makes the residual piecewise smooth in the parameters: a relative step of 1e-2 keeps
+    # finite differences above the jumps that stick/slip timing adds (1e-3 stalls on them), and short
+    # windows keep those jumps few (0.5 s windows stall, 0.1 s windows recover exact values).
+    result = least_squares(
+        problem.residuals,
+        x0,
+        bounds=(lower, np.full(len(names), np.inf)),
+        method="trf",
+        diff_step=1e-2,
+        x_scale=1.0,
+        max_nfev=max_evaluations,
+    )
+    estimates = _uncertainty(problem, result.x, result.jac, result.fun)
+    final = {p.name: p.estimate for p in estimates}
+    fitted = with_values(model, final)
+    x_final = np.array([final[n] for n in names]) / problem.x_scale
+    notes = [f"least_squares: {result.message} ({result.nfev} evaluations)"]
+    return TrajectoryFit(fitted, estimates, _rms(r0), _rms(problem.residuals(x_final)), len(r0), notes)
+
+
+def _rms(residual: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(residual**2)))
+
+
+def _uncertainty(
+    problem: TrajectoryProblem, x: np.ndarray, jac: np.ndarray, fun: np.ndarray
+) -> list[ParameterEstimate]:
+    m, n = jac.shape
+    dof = max(m - n, 1)
+    s2 = float(fun @ fun) / dof
+    # Column-normalized Jacobian: its conditioning says which directions the data cannot see.
+    norms = np.linalg.norm(jac, axis=0)
+    blind = norms == 0
+    jn = jac / np.where(blind, 1.0, norms)
+    _, sv, vt = np.linalg.svd(jn, full_matrices=False)
+    weak = sv < 1e-6 * sv[0] if sv.size and sv[0] > 0 else np.ones(n, bool)
+    confounded = np.zeros(n, bool)
+    for row, is_weak in zip(vt, weak, strict=True):
+        if is_weak:
+            confounded |= np.abs(row) > 0.3
+    try:
+        cov = np.linalg.pinv(jac.T @ jac) * s2
+        se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    except np.linalg.LinAlgError:
+        se = np.full(n, math.inf)
+    out = []
+    for i, name in enumerate(problem.names):
+        start = problem.start[name]
+        value = float(x[i] * problem.x_scale[i])
+        std = float(se[i] * problem.x_scale[i])
+        note = ""
+        if blind[i]:
+            note = "the data do not depend on it"
+        elif confounded[i]:
+            note = "confounded with other parameters in these data"
+        elif not math.isfinite(std) or (std > abs(value) and abs(value) > 0):
+            note = f"standard error {std:.3g} exceeds the estimate"
+        identifiable = not note
+        out.append(
+            ParameterEstimate(
+                name,
+                start,
+                value if identifiable else start,
+                std if identifiable else None,
+                identifiable,
+                note,
+            )
+        )
+    return out
