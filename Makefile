@@ -15,14 +15,13 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# The main job on the embedded defaults: the seed model under a sine voltage, replayed, summarized.
+# The main job on the embedded defaults: the characterization campaign on the simulated rig, each run
+# stored under $HDRIG_HOME (here results/store unless set) and its line printed as it lands.
 run: install
 	@mkdir -p $(OUT)
-	$(BIN)/hdrig model show seed
-	$(BIN)/hdrig simulate --model seed --input sine:amp=2,freq=0.5 --duration 10 --out $(OUT)/seed-sine.parquet
-	$(BIN)/hdrig simulate --model seed --input ramp:slope=0.1 --duration 20 --out $(OUT)/seed-ramp.csv
-	$(BIN)/hdrig simulate --model seed --input-file $(OUT)/seed-sine.parquet --out $(OUT)/seed-sine-replay.csv
-	@echo "results are in $(abspath $(OUT))"
+	HDRIG_HOME="$${HDRIG_HOME:-$(CURDIR)/$(OUT)/store}" $(BIN)/hdrig run campaign --rig configs/rigs/sim.yaml
+	@home="$${HDRIG_HOME:-$(CURDIR)/$(OUT)/store}"; echo "results: $$home/runs/<id>/ (data.parquet;"\
+	  "artifacts/: tables, results.json, plots/); list them: HDRIG_HOME=$$home $(BIN)/hdrig runs list"
 
 lint: install
 	$(BIN)/ruff check .
@@ -34,6 +33,7 @@ test: lint
 
 bench: install
 	$(BIN)/python bench/bench_simulator.py
+	$(BIN)/python bench/bench_campaign.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache *.egg-info

@@ -10,13 +10,21 @@ import argparse
 import json
 import sys
 from collections.abc import Callable, Sequence
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from model.errors import UserInputError
 from model.inputs import KINDS
 from model.params import PRESET_DIR, HarmonicDriveModel, load_model, preset_names
 
+if TYPE_CHECKING:
+    from rig.runner import RunOutcome
+
 Handler = Callable[[argparse.Namespace], int]
+
+CAMPAIGN = "campaign"
+EXIT_ABORTED = 3
+METRICS_SHOWN = 6  # metrics on a run's one-line summary; `hdrig runs show` prints them all
 
 
 def _say(message: str) -> None:
@@ -100,11 +108,219 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- hdrig run -----------------------------------------------------------------------------------
+
+
+def _run_overrides(experiment: str, pairs: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """`--set` pairs per experiment, validated against each experiment's parameters before anything runs.
+
+    A single experiment takes `key=value`; the campaign takes `experiment.key=value`.
+    """
+    from rig.experiments import CAMPAIGN_ORDER, EXPERIMENTS
+    from rig.runner import make_params, parse_overrides
+
+    if experiment != CAMPAIGN:
+        grouped = {experiment: list(pairs)}
+    else:
+        grouped = {}
+        for pair in pairs:
+            name, dot, _ = pair.partition("=")[0].partition(".")
+            if not dot or name not in CAMPAIGN_ORDER:
+                raise UserInputError(
+                    f"run campaign: --set {pair!r} must be EXPERIMENT.key=value,"
+                    f" EXPERIMENT one of {', '.join(CAMPAIGN_ORDER)}"
+                )
+            grouped.setdefault(name, []).append(pair[len(name) + 1 :])
+    overrides = {name: parse_overrides(name, group) for name, group in grouped.items()}
+    for name, values in overrides.items():
+        make_params(EXPERIMENTS[name], values)
+    return overrides
+
+
+def _summary(outcome: RunOutcome, samples: int) -> str:
+    """One line: id, experiment, status or abort reason, samples, key metrics, where to look."""
+    from rig.store import ARTIFACTS_DIR
+
+    parts = [outcome.run_id, outcome.experiment, outcome.reason or outcome.status, f"{samples} samples"]
+    shown = list(outcome.metrics.items())[:METRICS_SHOWN]
+    if shown:
+        more = len(outcome.metrics) - len(shown)
+        parts.append(
+            " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in shown)
+            + (f" (+{more} more)" if more else "")
+        )
+    if outcome.run_dir is not None:
+        if outcome.status == "complete":
+            parts.append(f"results: {outcome.run_dir / ARTIFACTS_DIR}")
+        else:
+            parts.append(f"data: {outcome.run_dir}")
+    return "  ".join(parts)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from rig.config import load_rig_config
+    from rig.experiments import EXPERIMENTS
+    from rig.progress import ProgressBar
+    from rig.runner import outcome_json, run_campaign, run_experiment
+    from rig.store import RunStore
+
+    name: str = args.experiment
+    if name != CAMPAIGN and name not in EXPERIMENTS:
+        known = ", ".join([*EXPERIMENTS, CAMPAIGN])
+        raise UserInputError(f"unknown experiment {name!r} (experiments: {known})")
+    config = load_rig_config(args.rig)
+    overrides = _run_overrides(name, args.set)
+    store = RunStore()
+
+    outcomes: list[RunOutcome] = []
+    with ProgressBar(enabled=not args.quiet) as bar:
+
+        def landed(outcome: RunOutcome) -> None:
+            outcomes.append(outcome)
+            if not args.json:
+                bar.write(_summary(outcome, store.get(outcome.run_id)["samples"]))
+
+        if name == CAMPAIGN:
+            run_campaign(config, overrides, store, bar, on_outcome=landed)
+        else:
+            landed(run_experiment(name, config, overrides[name], store, bar))
+
+    if args.json:
+        data = [outcome_json(o) for o in outcomes]
+        _print_json(data if name == CAMPAIGN else data[0])
+    aborted = [o for o in outcomes if o.status != "complete"]
+    for outcome in aborted:
+        _say(f"hdrig: run {outcome.run_id} {outcome.reason or outcome.status}")
+    return EXIT_ABORTED if aborted else 0
+
+
+# --- hdrig runs ----------------------------------------------------------------------------------
+
+
+def cmd_runs_list(args: argparse.Namespace) -> int:
+    from rig.store import RunStore
+
+    store = RunStore()
+    runs = store.list_runs()
+    if args.json:
+        _print_json(runs)
+        return 0
+    if not runs:
+        _say(f"no runs in {store.home}")
+        return 0
+    header = {"id": "id", "experiment": "experiment", "status": "status", "started": "started (UTC)"}
+    rows = [
+        {"id": r["id"], "experiment": r["experiment"], "status": r["status"], "started": r["started"][:19]}
+        for r in runs
+    ]
+    width = {key: max(len(row[key]) for row in [header, *rows]) for key in header}
+    for row, run in zip([header, *rows], [None, *runs], strict=True):
+        cells = "  ".join(f"{row[key]:<{width[key]}}" for key in header)
+        samples = "samples" if run is None else str(run["samples"])
+        reason = "" if run is None or not run["reason"] else f"  {run['reason']}"
+        print(f"{cells}  {samples:>8}{reason}")
+    _say(f"{len(runs)} run{'s' if len(runs) != 1 else ''} in {store.home}")
+    return 0
+
+
+def _artifacts(run_dir: Path) -> list[Path]:
+    from rig.store import ARTIFACTS_DIR
+
+    folder = run_dir / ARTIFACTS_DIR
+    return sorted(p for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else []
+
+
+def cmd_runs_show(args: argparse.Namespace) -> int:
+    from rig.store import RunStore
+
+    store = RunStore()
+    entry = store.get(args.run)
+    run_dir = store.run_dir(args.run)
+    entry["run_dir"] = str(run_dir)
+    entry["artifacts"] = [str(p) for p in _artifacts(run_dir)]
+    if args.json:
+        _print_json(entry)
+        return 0
+    model = f"{entry['model_name']} ({entry['model_hash']})" if entry["model_name"] else "-"
+    fields = {
+        "id": entry["id"],
+        "experiment": entry["experiment"],
+        "rig": entry["rig"],
+        "model": model,
+        "status": entry["status"],
+        "reason": entry["reason"] or "-",
+        "started": entry["started"],
+        "ended": entry["ended"] or "-",
+        "samples": entry["samples"],
+        "data": entry["path"],
+    }
+    for key, value in fields.items():
+        print(f"{key:<11} {value}")
+    print("metrics:" + ("" if entry["metrics"] else " none"))
+    for key, value in entry["metrics"].items():
+        print(f"  {key:<28} {value}")
+    print("artifacts:" + ("" if entry["artifacts"] else " none"))
+    for path in entry["artifacts"]:
+        print(f"  {path}")
+    return 0
+
+
+def cmd_runs_export(args: argparse.Namespace) -> int:
+    from rig.store import RunStore
+
+    store = RunStore()
+    store.get(args.run)  # an unknown id is told as such; a run whose writer died is sealed first
+    try:
+        path = store.export(args.run, args.format, args.out)
+    except UserInputError:
+        raise
+    except ValueError as exc:  # the store refuses a suffix that does not match the format
+        raise UserInputError(f"runs export: {exc}") from None
+    _say(f"wrote run {args.run} to {path}")
+    return 0
+
+
 # --- parser ---------------------------------------------------------------------------------------
 
 
+EXPERIMENT_NAMES = "<experiments>"
+"""Stands for the registered experiments in help texts: filled in only when help is shown, since
+importing the experiments (and matplotlib with them) would slow every command's start."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with CONTRACT.md's one-line errors (exit status 2), instead of usage plus error."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"hdrig: error: {message} (see {self.prog} --help)\n")
+
+    def format_help(self) -> str:
+        text = super().format_help()
+        if EXPERIMENT_NAMES in text:
+            from rig.experiments import EXPERIMENTS
+
+            text = text.replace(EXPERIMENT_NAMES, ", ".join(EXPERIMENTS))
+        return text
+
+
+RUN_EPILOG = """\
+--set: a single experiment takes key=value (e.g. --set hold_s=0.5); the campaign takes
+experiment.key=value (e.g. --set speed-sweep.hold_s=0.5). Values are YAML scalars or lists
+(--set speeds_rad_s=[1,10,100]). Every value is checked before the rig is opened; a set-point beyond
+the rig's saturation is refused when its segment comes (exit status 2, the run kept as aborted).
+
+Output: one line per run as it lands (run id, status or abort reason, samples, key metrics, and the
+run's artifacts folder with its CSV tables, results.json and plots/); --json prints one JSON document
+instead (an object for one experiment, a list for the campaign). A progress bar with ETA goes to stderr
+when stderr is a terminal.
+
+Exit status: 0 every run complete; 2 bad input (unknown experiment or rig file, bad --set, a set-point
+the rig refuses); 3 a run aborted (safety envelope breached or quick stop): its data are kept, the
+reason is on stderr; 130 interrupted (Ctrl-C)."""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="hdrig", description="Characterize harmonic-drive transmissions on a real or simulated rig."
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -144,6 +360,45 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--diagnostics", action="store_true", help="also write tau_m, F_m, F_l and T_s")
     sim.add_argument("--out", required=True, metavar="FILE", help="run file to write (.parquet, .csv, .mat)")
     sim.set_defaults(handler=cmd_simulate)
+
+    names = EXPERIMENT_NAMES
+    run = sub.add_parser(
+        "run",
+        help="run an experiment, or the whole campaign, on a rig; store and analyze each run",
+        description=f"Run one experiment ({names}) or `{CAMPAIGN}` (all of them in turn)\n"
+        "on a rig, and store each run under $HDRIG_HOME (default ~/.hdrig).",
+        epilog=RUN_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    run.add_argument("experiment", metavar="EXPERIMENT", help=f"{names} or {CAMPAIGN}")
+    run.add_argument("--rig", required=True, metavar="RIG", help="rig file, or a name in configs/rigs (sim)")
+    run.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="experiment parameter (repeatable); EXPERIMENT.KEY=VALUE for the campaign",
+    )
+    run.add_argument("--json", action="store_true", help="one JSON document on stdout when done")
+    run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(handler=cmd_run)
+
+    runs = sub.add_parser("runs", help="the run catalog: list, show and export runs")
+    runs_sub = runs.add_subparsers(dest="runs_command", required=True, metavar="ACTION")
+    runs_list = runs_sub.add_parser("list", help="every run: id, experiment, status, started, samples")
+    runs_list.add_argument("--json", action="store_true", help="the catalog as a JSON list")
+    runs_list.set_defaults(handler=cmd_runs_list)
+    runs_show = runs_sub.add_parser("show", help="one run: catalog entry, metrics, artifacts")
+    runs_show.add_argument("run", metavar="RUN", help="run id (see hdrig runs list)")
+    runs_show.add_argument("--json", action="store_true", help="one JSON object")
+    runs_show.set_defaults(handler=cmd_runs_show)
+    export = runs_sub.add_parser("export", help="write a run as CSV (+ .json metadata), Parquet or MAT")
+    export.add_argument("run", metavar="RUN", help="run id (see hdrig runs list)")
+    export.add_argument("--format", required=True, choices=("csv", "parquet", "mat"), help="file format")
+    export.add_argument(
+        "--out", required=True, metavar="PATH", help="file to write, or a folder to write <RUN>.<format> in"
+    )
+    export.set_defaults(handler=cmd_runs_export)
     return parser
 
 
