@@ -181,7 +181,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 bar.write(_summary(outcome, store.get(outcome.run_id)["samples"]))
 
         if name == CAMPAIGN:
-            run_campaign(config, overrides, store, bar, on_outcome=landed)
+            run_campaign(config, overrides, store, bar, on_outcome=landed, keep_going=args.keep_going)
         else:
             landed(run_experiment(name, config, overrides[name], store, bar))
 
@@ -380,6 +380,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="experiment parameter (repeatable); EXPERIMENT.KEY=VALUE for the campaign",
     )
     run.add_argument("--json", action="store_true", help="one JSON document on stdout when done")
+    run.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="campaign: go on to the next experiment after a run aborts (default: stop there)",
+    )
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     run.set_defaults(handler=cmd_run)
 

@@ -144,7 +144,7 @@ class Rig(ABC):
         """
         if not self._enabled:
             raise RigError(f"rig {self.config.name!r} is not enabled: call enable() first")
-        self._check_segment(segment)
+        self.check_segment(segment)
         tau = np.broadcast_to(np.asarray(segment.tau_ext, dtype=np.float64), (segment.cycles,))
         chunk = max(1, round(chunk_s / self.period_s))
         done = 0
@@ -228,7 +228,8 @@ class Rig(ABC):
     model: HarmonicDriveModel | None = None
     """The model a simulated rig runs (None on hardware): recorded with each run."""
 
-    def _check_segment(self, segment: Segment) -> None:
+    def check_segment(self, segment: Segment) -> None:
+        """Refuse a segment whose set-points the rig cannot or must not follow (RigError)."""
         sp = np.asarray(segment.setpoint)
         if sp.ndim != 1 or sp.shape[0] == 0 or not np.all(np.isfinite(sp)):
             raise RigError(f"segment {segment.label!r}: set-points must be a non-empty finite 1-D array")

@@ -62,8 +62,8 @@ def make_params(experiment: Experiment, overrides: dict[str, Any]) -> Experiment
         raise UserInputError(f"run {experiment.name}: {describe_validation_error(exc)}") from None
 
 
-def _settle(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> float:
-    """Hold still briefly (velocity 0) and return the motor position it holds."""
+def _settle(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> tuple[float, str | None]:
+    """Hold still briefly (velocity 0); the motor position it holds, and the abort reason if it tripped."""
     last: dict[str, np.ndarray] = {}
 
     def keep(block: dict[str, np.ndarray]) -> None:
@@ -71,8 +71,8 @@ def _settle(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> float:
         sink(block)
 
     cycles = max(1, round(SETTLE_S * rig.config.sample_rate_hz))
-    rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(cycles), 0.0, "settle"), keep)
-    return float(last["theta_m"][-1])
+    result = rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(cycles), 0.0, "settle"), keep)
+    return float(last["theta_m"][-1]) if last else float("nan"), result.aborted
 
 
 def _save_results(store: RunStore, run_id: str, results: Results) -> list[Path]:
@@ -137,12 +137,17 @@ def _play(
         meta=meta,
     )
     with writer:
-        theta_m0 = _settle(rig, writer.append)
+        theta_m0, aborted = _settle(rig, writer.append)
+        if aborted is not None:
+            writer.finish("aborted", reason=aborted)
+            return RunOutcome(writer.run_id, experiment.name, "aborted", aborted, run_dir=writer.run_dir)
         ctx = RigContext(config, rig.gear_ratio, rig.torque_constant_nm_per_a, theta_m0)
         program = experiment.program(params, ctx)
         labels = [seg.label for seg in program]
         if len(set(labels)) != len(labels):
             raise ValueError(f"experiment {experiment.name}: segment labels must be unique, got {labels}")
+        for seg in program:
+            rig.check_segment(seg)  # refuse the whole program before any of it moves the motor
         start = writer.samples
         segments = []
         for seg in program:
@@ -193,8 +198,13 @@ def run_campaign(
     progress: Progress | None = None,
     experiments: Sequence[str] = CAMPAIGN_ORDER,
     on_outcome: Callable[[RunOutcome], None] | None = None,
+    keep_going: bool = False,
 ) -> list[RunOutcome]:
-    """Every experiment in turn, each on a fresh rig from rest, each its own run."""
+    """Every experiment in turn, each on a fresh rig from rest, each its own run.
+
+    A run that ends `aborted` stops the campaign (a tripped envelope on a real bench wants a person),
+    unless `keep_going`.
+    """
     store = store or RunStore()
     outcomes = []
     for index, name in enumerate(experiments):
@@ -205,6 +215,8 @@ def run_campaign(
         outcomes.append(outcome)
         if on_outcome is not None:
             on_outcome(outcome)
+        if outcome.status == "aborted" and not keep_going:
+            break
     return outcomes
 
 

@@ -327,14 +327,14 @@ class RunStore:
     def export(self, run_id: str, fmt: str, out_path: str | os.PathLike[str]) -> Path:
         """Write a run as csv, parquet or mat; a folder as `out_path` gets `<id>.<fmt>` inside it."""
         if fmt not in EXPORT_FORMATS:
-            raise ValueError(f"unknown export format {fmt!r}; use one of {', '.join(EXPORT_FORMATS)}")
+            raise UserInputError(f"unknown export format {fmt!r}; use one of {', '.join(EXPORT_FORMATS)}")
         out = Path(out_path)
         if out.is_dir():
             out = out / f"{run_id}.{fmt}"
         elif not out.suffix:
             out = out.with_suffix(f".{fmt}")
         elif out.suffix.lower() != f".{fmt}":
-            raise ValueError(f"{out}: suffix {out.suffix!r} does not match the export format {fmt!r}")
+            raise UserInputError(f"{out}: suffix {out.suffix!r} does not match the export format {fmt!r}")
         return write_run(self.read(run_id), out)
 
 

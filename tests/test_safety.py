@@ -218,3 +218,27 @@ def test_set_point_beyond_saturation_is_refused_before_anything_moves(
         assert sink.blocks == [] and rig.t_s == 0.0
         np.testing.assert_array_equal(rig.plant.x, state)
         assert rig.health().enabled and rig.health().last_abort is None
+
+
+def test_a_trip_while_settling_ends_the_run_aborted_with_its_reason(tmp_path: Any) -> None:
+    from rig.runner import run_experiment
+    from rig.store import RunStore
+
+    # The rig starts at output angle 0, outside a travel that begins at 0.1 rad: the settle step trips.
+    config = sim_config(limits={"travel_min_out_rad": 0.1})
+    outcome = run_experiment("speed-sweep", config, {}, RunStore(tmp_path))
+    assert outcome.status == "aborted"
+    assert outcome.reason is not None and outcome.reason.startswith("aborted: travel limit")
+    assert RunStore(tmp_path).get(outcome.run_id)["status"] == "aborted"
+
+
+def test_a_program_beyond_the_rig_is_refused_before_anything_moves(tmp_path: Any) -> None:
+    from model.errors import UserInputError
+    from rig.runner import run_experiment
+    from rig.store import RunStore
+
+    # A speed the drive cannot reach: refused for the whole program, not when its segment comes up.
+    with pytest.raises(UserInputError, match="beyond the rig's"):
+        run_experiment("speed-sweep", sim_config(), {"speeds_rad_s": [1.0, 650.0]}, RunStore(tmp_path))
+    (entry,) = RunStore(tmp_path).list_runs()
+    assert entry["samples"] == round(0.2 * 1000), "only the settle step ran"

@@ -15,9 +15,14 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from model.errors import UserInputError
 from model.run import Run
 from rig.config import RigConfig
 from rig.interface import Segment
+
+
+class ProgramError(UserInputError):
+    """The parameters are valid but do not fit this rig (its stroke, its limits); says which and why."""
 
 
 class ExperimentParams(BaseModel):

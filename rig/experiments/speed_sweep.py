@@ -13,7 +13,14 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from model.run import Run
-from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext, segments_of
+from rig.experiments.base import (
+    Experiment,
+    ExperimentParams,
+    ProgramError,
+    Results,
+    RigContext,
+    segments_of,
+)
 from rig.experiments.plots import new_figure, save_figure
 from rig.interface import ControlMode, Segment
 
@@ -53,8 +60,9 @@ def sweep_program(params: SpeedSweepParams, ctx: RigContext, prefix: str = "") -
     for speed in params.speeds_rad_s:
         duration = min(params.settle_s + params.hold_s, room_m / speed)
         if duration <= params.settle_s:
-            raise ValueError(
-                f"speed {speed} rad/s: the stroke ahead ({room_m:.3g} rad) is too short to settle"
+            raise ProgramError(
+                f"speed-sweep: at {speed} rad/s the stroke ahead ({room_m:.3g} rad motor) is too short"
+                f" to settle in settle_s = {params.settle_s} s"
             )
         cycles = ctx.cycles(duration)
         for sign in (1.0, -1.0):
