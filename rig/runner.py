@@ -148,7 +148,7 @@ def _play(
             raise ValueError(f"experiment {experiment.name}: segment labels must be unique, got {labels}")
         for seg in program:
             rig.check_segment(seg)  # refuse the whole program before any of it moves the motor
-        start = writer.samples
+        start = writer.appended
         segments = []
         for seg in program:
             segments.append({"label": seg.label, "mode": str(seg.mode), "start": start, "cycles": seg.cycles})

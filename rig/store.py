@@ -348,6 +348,7 @@ class RunWriter:
         self.columns = list(columns)
         self.flush_interval_s = flush_interval_s
         self.samples = 0  # rows flushed to disk so far
+        self.appended = 0  # rows appended so far, flushed or not: the row index of the next one
         self.closed = False
         self._buffer: list[dict[str, np.ndarray]] = []
         self._last_t: float | None = None
@@ -381,6 +382,7 @@ class RunWriter:
                 )
             self._last_t = float(t[-1])
             self._buffer.append(arrays)
+            self.appended += int(t.size)
         if monotonic() - self._last_flush_s >= self.flush_interval_s:
             self.flush()
 
