@@ -1,0 +1,321 @@
+"""`chirp`: frequency response of the axis, 0.5–20 Hz, with coherence (the article's Bode plots to 10 Hz).
+
+Excitation: a periodic chirp — a Schroeder multisine, i.e. a frequency sweep over `period_s` made
+exactly periodic, one line every 1/period_s Hz from f_start to f_stop — in the motor speed, riding on a
+mean speed, played in closed-loop position mode (the set-point is the integral of that speed): out
+towards the side of the stroke with more room, then after a smooth turn back over the same stretch,
+mirrored. Each sweep opens with one period that fades the excitation in and is not analyzed (the
+loop's transient), then `periods` whole periods are analyzed. Why so:
+- the article's Bode plots are of the position system; the position loop keeps the axis inside the
+  stroke (no drift of integrated speed errors) under the rig's following-error watch;
+- with the excitation's peak below the mean speed the motor never reverses, so Coulomb friction keeps
+  one sign: a bias, not the stick nonlinearity that would swamp the small signal;
+- a periodic excitation analyzed over whole periods (rectangular windows of one period, no overlap)
+  has no leakage and every window holds every line, so the coherence measures disturbance and
+  nonlinearity, not the windowing of a one-shot sweep (with which a linear plant showed γ² ≈ 0.85);
+- line amplitudes fall as f^(−amp_exponent), by default f^(−3/4), between a logarithmic sweep's
+  f^(−1/2) and constant acceleration's f^(−1): more excitation where the current it asks
+  (~2π·f·J·amplitude) is small against friction, less at the load resonance, where the position loop
+  drives an almost undamped load (the seed asks ~6 A at most, under the drive's 10 A);
+- the harmonics of the position-dependent friction, n·mean/2π (25 rad/s: 4.0, 8.0, 11.9 Hz...), are
+  what limits the coherence of the plant FRFs on the seed, as they would on a real harmonic drive.
+
+Estimated from cross-spectra (scipy.signal.csd, averaged over the analyzed periods of both sweeps), the
+reference r being the output set-point with the mean-speed ramp taken out (of it and of θ_l alike), so
+that every analyzed signal is periodic:
+- `frf_speed`: plant, motor current command i_cmd → measured motor speed ω_m [rad/s per A];
+- `frf_load`: plant, i_cmd → load angle θ_l [rad per A];
+- `frf_closed_loop`: position system, output set-point → θ_l [rad per rad].
+In closed loop the plain H1 = P_uy/P_uu is biased wherever noise fed back through the controller is not
+small against the excitation; the reference is uncorrelated with it, so the plant is estimated as
+H = P_ry/P_ru (the indirect, "joint input–output" estimate), its coherence the weaker of γ²(r, u) and
+γ²(r, y). The measured FRFs include the drive's sampling chain (command held one cycle, speed from
+filtered encoder differences).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field, ValidationInfo, field_validator
+from scipy import signal
+
+from model.errors import UserInputError
+from model.run import Run
+from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext, segment_rows
+from rig.experiments.plots import new_figure, save_figure
+from rig.experiments.tracking import check_stroke, output_segment
+from rig.interface import Segment
+
+SWEEPS = ("sweep-out", "sweep-back")
+COHERENCE_BAND_HZ = (1.0, 10.0)
+"""Band of the mean-coherence metrics: the article's Bode range."""
+
+FRFS = {
+    # name: (input signal, output signal, what, unit)
+    "frf_speed": ("current", "speed", "i_cmd → ω_m", "rad/s/A"),
+    "frf_load": ("current", "load", "i_cmd → θ_l", "rad/A"),
+    "frf_closed_loop": ("reference", "load", "set-point → θ_l", "rad/rad"),
+}
+
+
+class ChirpParams(ExperimentParams):
+    f_start_hz: float = Field(default=0.5, gt=0, le=50, description="lowest line of the excitation [Hz]")
+    f_stop_hz: float = Field(
+        default=20.0, gt=0, le=200, validate_default=True, description="highest line of the excitation [Hz]"
+    )
+    period_s: float = Field(
+        default=2.0,
+        ge=0.2,
+        le=30,
+        validate_default=True,
+        description="period of the excitation; lines every 1/period_s [s]",
+    )
+    periods: int = Field(
+        default=3, ge=2, le=30, description="periods analyzed per sweep, after a lead-in [–]"
+    )
+    mean_speed_motor_rad_s: float = Field(
+        default=25.0,
+        gt=0,
+        le=300,
+        description="motor speed the sweep rides on, so friction keeps its sign [rad/s]",
+    )
+    speed_amp_motor_rad_s: float = Field(
+        default=15.0,
+        gt=0,
+        validate_default=True,
+        le=300,
+        description="peak motor speed of the excitation; below the mean speed [rad/s]",
+    )
+    amp_exponent: float = Field(
+        default=0.75, ge=0, le=1.5, description="line amplitudes fall as f^-amp_exponent; 0: flat [–]"
+    )
+    ramp_s: float = Field(
+        default=0.5, gt=0, le=5, description="smooth speed-up and slow-down; the turn takes twice this [s]"
+    )
+    # A lightly damped resonance loses coherence to the loop's nonlinearity near it: 0.5 keeps its peak
+    # (half the output power still linear in the reference) and drops the points friction swamps.
+    coherence_min: float = Field(
+        default=0.5, gt=0, lt=1, description="points below it are not used for resonance and bandwidth [–]"
+    )
+
+    @field_validator("f_stop_hz")
+    @classmethod
+    def _above_start(cls, f_stop: float, info: ValidationInfo) -> float:
+        f_start = info.data.get("f_start_hz")
+        if f_start is not None and f_stop <= f_start:
+            raise ValueError(f"must be above f_start_hz ({f_start} Hz)")
+        return f_stop
+
+    @field_validator("period_s")
+    @classmethod
+    def _holds_lowest_line(cls, period_s: float, info: ValidationInfo) -> float:
+        f_start = info.data.get("f_start_hz")
+        if f_start is not None and period_s * f_start < 1.0 - 1e-9:
+            raise ValueError(f"must hold one period of f_start_hz, at least {1.0 / f_start:.4g} s")
+        return period_s
+
+    @field_validator("speed_amp_motor_rad_s")
+    @classmethod
+    def _below_mean(cls, amp: float, info: ValidationInfo) -> float:
+        mean = info.data.get("mean_speed_motor_rad_s")
+        if mean is not None and amp >= mean:
+            raise ValueError(
+                f"must be below mean_speed_motor_rad_s ({mean} rad/s): the motor must not reverse"
+            )
+        return amp
+
+
+def excitation(params: ChirpParams, ctx: RigContext) -> tuple[np.ndarray, np.ndarray]:
+    """One period of the speed excitation [rad/s] (peak speed_amp) and its line frequencies [Hz]."""
+    cycles = ctx.cycles(params.period_s)
+    period_s = cycles / ctx.rate_hz  # whole cycles: every line is a whole number of cycles per period
+    lines = np.arange(
+        math.ceil(params.f_start_hz * period_s - 1e-9), math.floor(params.f_stop_hz * period_s + 1e-9) + 1
+    )
+    freq_hz = lines / period_s
+    amps = freq_hz**-params.amp_exponent
+    # Schroeder's phases for a given power spectrum p: φ_k = −2π·Σ_{l<k} (k − l)·p_l, a low crest factor.
+    cumulative = np.cumsum(amps**2 / np.sum(amps**2))
+    phases = -2 * np.pi * np.concatenate([[0.0], np.cumsum(cumulative)[:-1]])
+    t_s = np.arange(cycles) / ctx.rate_hz
+    wave = amps @ np.cos(2 * np.pi * np.outer(freq_hz, t_s) + phases[:, None])
+    return params.speed_amp_motor_rad_s * wave / np.max(np.abs(wave)), freq_hz
+
+
+def speed_profile(params: ChirpParams, ctx: RigContext) -> list[tuple[str, np.ndarray]]:
+    """Motor speed per cycle of each segment: speed up, sweep out, turn, sweep back, slow down."""
+
+    def times(duration_s: float) -> np.ndarray:
+        return np.arange(ctx.cycles(duration_s)) / ctx.rate_hz
+
+    limits, start_out = ctx.config.limits, ctx.theta_m0 * ctx.gear_ratio
+    # Out towards the side with more room, so that the stroke used is the larger free one.
+    ahead, behind = limits.travel_max_out_rad - start_out, start_out - limits.travel_min_out_rad
+    mean = params.mean_speed_motor_rad_s * (1.0 if ahead >= behind else -1.0)
+    wave, _ = excitation(params, ctx)
+    lead = times(params.period_s)
+    sweep = np.tile(wave, params.periods + 1)
+    sweep[: len(lead)] *= (1 - np.cos(np.pi * lead / params.period_s)) / 2  # fade in over the lead-in
+    ramp, turn = times(params.ramp_s), times(2 * params.ramp_s)
+    # Sweeps end on whole periods, so the excitation fading out over the turn continues from wave[0].
+    fade_turn = (1 + np.cos(np.pi * turn / (2 * params.ramp_s))) / 2
+    fade_ramp = (1 + np.cos(np.pi * ramp / params.ramp_s)) / 2
+    return [
+        ("accel", mean * (1 - fade_ramp)),
+        (SWEEPS[0], mean + sweep),
+        ("turn", mean * (2 * fade_turn - 1) + np.resize(wave, turn.size) * fade_turn),
+        (SWEEPS[1], -mean - sweep),
+        ("decel", -(mean + np.resize(wave, ramp.size)) * fade_ramp),
+    ]
+
+
+def analyzed_rows(run: Run, label: str, params: ChirpParams, ctx: RigContext) -> slice:
+    """Rows of a sweep's analyzed periods: after the lead-in, whole periods."""
+    rows, cycles = segment_rows(run, label), ctx.cycles(params.period_s)
+    return slice(rows.start + cycles, rows.start + cycles * (1 + params.periods))
+
+
+def frf_tables(run: Run, params: ChirpParams, ctx: RigContext) -> dict[str, dict[str, np.ndarray]]:
+    """The FRFs of FRFS at the excitation's lines: freq_hz, magnitude_db, phase_deg, coherence each."""
+    cycles = ctx.cycles(params.period_s)
+    spectra: dict[tuple[str, str], np.ndarray] = {}
+    names = ("reference", "current", "speed", "load")
+    for label in SWEEPS:
+        rows = analyzed_rows(run, label, params, ctx)
+        set_out = ctx.gear_ratio * run["setpoint"][rows.start - 1 : rows.stop]
+        # The mean-speed ramp of the set-point, exact over whole periods (the excitation sums to zero).
+        ramp = (set_out[-1] - set_out[0]) / (rows.stop - rows.start) * np.arange(1, set_out.size)
+        x = {
+            "reference": set_out[1:] - ramp,
+            "current": run["i_cmd"][rows],
+            "speed": run["omega_m"][rows],
+            "load": run["theta_l"][rows] - ramp,
+        }
+        for b in names:
+            for a in dict.fromkeys(("reference", b)):  # once when b is the reference
+                freq, p = signal.csd(
+                    x[a],
+                    x[b],
+                    fs=ctx.rate_hz,
+                    window="boxcar",
+                    nperseg=cycles,
+                    noverlap=0,
+                    detrend="constant",
+                )
+                spectra[a, b] = spectra.get((a, b), 0) + p / len(SWEEPS)
+    _, lines = excitation(params, ctx)
+    at_lines = np.searchsorted(freq, lines - 1e-9)
+
+    def coherence(a: str, b: str) -> np.ndarray:
+        return np.asarray(np.abs(spectra[a, b]) ** 2 / (spectra[a, a].real * spectra[b, b].real))
+
+    tables = {}
+    for name, (u, y, _, _) in FRFS.items():
+        h = (spectra["reference", y] / spectra["reference", u])[at_lines]
+        gamma2 = np.minimum(coherence("reference", u), coherence("reference", y))
+        tables[name] = {
+            "freq_hz": freq[at_lines],
+            "magnitude_db": 20 * np.log10(np.abs(h)),
+            "phase_deg": np.degrees(np.unwrap(np.angle(h))),
+            "coherence": gamma2[at_lines],
+        }
+    return tables
+
+
+def resonance(table: dict[str, np.ndarray], coherence_min: float) -> tuple[float, float] | None:
+    """(antiresonance, resonance) frequencies of a current → speed FRF, or None if not seen [Hz].
+
+    The integrator of the rigid body is taken out (|H|·f is flat at low frequency); the antiresonance
+    is its deepest coherent dip, the resonance its highest coherent peak above the dip, if the peak
+    stands 10 dB over the dip and is not the last coherent point (a peak must come back down).
+    """
+    coherent = table["coherence"] >= coherence_min
+    freq = table["freq_hz"][coherent]
+    level_db = table["magnitude_db"][coherent] + 20 * np.log10(freq)
+    if freq.size < 3:
+        return None
+    dip = int(np.argmin(level_db))
+    if dip == freq.size - 1:
+        return None
+    peak = dip + 1 + int(np.argmax(level_db[dip + 1 :]))
+    if peak == freq.size - 1 or level_db[peak] - level_db[dip] < 10.0:
+        return None
+    return float(freq[dip]), float(freq[peak])
+
+
+class Chirp(Experiment):
+    name = "chirp"
+    summary = "periodic sweep 0.5–20 Hz on a mean speed; plant and position FRFs with coherence (Bode)"
+    Params = ChirpParams
+
+    def program(self, params: ChirpParams, ctx: RigContext) -> list[Segment]:
+        nyquist_hz = ctx.rate_hz / 2
+        if params.f_stop_hz > nyquist_hz / 2:
+            raise UserInputError(
+                f"run {self.name}: field 'f_stop_hz': above a quarter of the rig's {ctx.rate_hz:g} Hz rate"
+            )
+        profile = speed_profile(params, ctx)
+        speeds = np.concatenate([speed for _, speed in profile])
+        out_rad = ctx.gear_ratio * np.cumsum(speeds) / ctx.rate_hz  # the set-point's own rate is the speed
+        low, high = min(0.0, float(out_rad.min())), max(0.0, float(out_rad.max()))
+        check_stroke(ctx, low, high, self.name, "mean_speed_motor_rad_s")
+        ends = np.cumsum([len(speed) for _, speed in profile])
+        return [
+            output_segment(ctx, part, label)
+            for (label, _), part in zip(profile, np.split(out_rad, ends[:-1]), strict=True)
+        ]
+
+    def analyze(self, run: Run, params: ChirpParams, ctx: RigContext) -> Results:
+        tables = frf_tables(run, params, ctx)
+        low, high = COHERENCE_BAND_HZ
+        metrics: dict[str, float | int | str] = {}
+        for name, table in tables.items():
+            in_band = (table["freq_hz"] >= low) & (table["freq_hz"] <= high)
+            metrics[f"coherence_1_10hz_{name.removeprefix('frf_')}"] = float(
+                np.mean(table["coherence"][in_band])
+            )
+        notes = []
+        found = resonance(tables["frf_speed"], params.coherence_min)
+        if found is None:
+            notes.append("no resonance seen in i_cmd → ω_m among the coherent points")
+        else:
+            metrics["antiresonance_hz"], metrics["resonance_hz"] = found
+        closed = tables["frf_closed_loop"]
+        coherent = closed["coherence"] >= params.coherence_min
+        if np.any(coherent):
+            peak = int(np.argmax(np.where(coherent, closed["magnitude_db"], -np.inf)))
+            metrics["closed_loop_peak_hz"] = float(closed["freq_hz"][peak])
+            metrics["closed_loop_peak_db"] = float(closed["magnitude_db"][peak])
+        below = np.flatnonzero((closed["magnitude_db"] < -3.0) & coherent)
+        if below.size:
+            metrics["closed_loop_bandwidth_hz"] = float(closed["freq_hz"][below[0]])
+        else:
+            notes.append("closed loop stays above −3 dB over the coherent sweep")
+        return Results(metrics, tables, notes)
+
+    def plot(
+        self, run: Run, results: Results, params: ChirpParams, ctx: RigContext, out_dir: Path
+    ) -> list[Path]:
+        fig, _ = new_figure("Frequency response (periodic sweep on a mean speed, closed loop)", 3)
+        mag_ax, phase_ax, coh_ax = fig.axes
+        for colour, (name, (_, _, what, unit)) in zip(("C0", "C1", "C2"), FRFS.items(), strict=True):
+            table = results.tables[name]
+            freq = table["freq_hz"]
+            mag_ax.semilogx(freq, table["magnitude_db"], colour, label=f"{what} [dB {unit}]")
+            phase_ax.semilogx(freq, table["phase_deg"], colour)
+            coh_ax.semilogx(freq, table["coherence"], colour)
+        for frequency in (results.metrics.get("antiresonance_hz"), results.metrics.get("resonance_hz")):
+            if isinstance(frequency, float):
+                for each in fig.axes:
+                    each.axvline(frequency, color="0.5", ls=":", lw=0.8)
+        mag_ax.set_ylabel("magnitude [dB]")
+        mag_ax.legend(fontsize=8)
+        phase_ax.set_ylabel("phase [°]")
+        coh_ax.axhline(params.coherence_min, color="0.5", ls="--", lw=0.8)
+        coh_ax.set_ylim(0, 1.05)
+        coh_ax.set_ylabel("coherence γ² [–]")
+        coh_ax.set_xlabel("frequency [Hz]")
+        return [save_figure(fig, out_dir / "bode.png")]
