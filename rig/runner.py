@@ -125,6 +125,7 @@ def _play(
         "experiment": experiment.name,
         "rig": config.name,
         "params": params.model_dump(mode="json"),
+        "rig_config": config.model_dump(mode="json"),
         "gear_ratio": rig.gear_ratio,
         "torque_constant_nm_per_a": rig.torque_constant_nm_per_a,
     }

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict
 
 from model.errors import UserInputError
 from model.run import Run
-from rig.config import RigConfig
+from rig.config import RigConfig, load_rig_config
 from rig.interface import Segment
 
 
@@ -47,6 +47,24 @@ class RigContext:
     def cycles(self, duration_s: float) -> int:
         """Whole control cycles in a duration (at least one)."""
         return max(1, round(duration_s * self.config.sample_rate_hz))
+
+
+def context_from_run(run: Run, where: str = "run") -> RigContext:
+    """The rig context a recorded run was made in, from its metadata (for re-analysis and validation)."""
+    meta = run.meta
+    missing = [k for k in ("gear_ratio", "torque_constant_nm_per_a", "theta_m0") if k not in meta]
+    if missing or ("rig_config" not in meta and "rig" not in meta):
+        raise UserInputError(
+            f"{where}: lacks the rig metadata ({', '.join(missing) or 'rig'}) that re-analysis needs:"
+            " use runs recorded by `hdrig run`, or their Parquet/CSV export with its metadata"
+        )
+    if "rig_config" in meta:
+        config = RigConfig.model_validate(meta["rig_config"])
+    else:
+        config = load_rig_config(str(meta["rig"]))
+    return RigContext(
+        config, float(meta["gear_ratio"]), float(meta["torque_constant_nm_per_a"]), float(meta["theta_m0"])
+    )
 
 
 @dataclass
