@@ -1,0 +1,495 @@
+"""The DAQ board's twin: the device end of docs/DAQ_PROTOCOL.md, on a pty or a loopback TCP socket.
+
+It measures a *source* — the true (θ_m, θ_l) at device times, e.g. the plant that the CANopen twin
+runs — through the board's sensors: the encoder quantizes θ_m to whole counts, the capacitive sensor
+adds seeded Gaussian noise to θ_l and quantizes the arc at its lever to whole counts. The host opens
+`twin.url` with `drivers.serial_daq.SerialDaq` exactly as it would open the board.
+
+One thread runs the device: it parses command lines, answers each with a reply frame, and while
+streaming sends a data frame as soon as its last sample is due on the device clock. Like the board,
+it keeps a bounded FIFO: when the host does not read, whole data frames are dropped (their sequence
+numbers are used up, the next frame carries STATUS_OVERRUN); replies are never dropped.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import queue
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable
+from typing import Literal, Protocol
+
+import numpy as np
+
+from drivers.daq_protocol import (
+    ERR_BAD_ARGUMENT,
+    ERR_BAD_LINE,
+    ERR_STREAMING,
+    ERR_UNKNOWN_COMMAND,
+    MAX_LINE_BYTES,
+    SAMPLE_DTYPE,
+    STATUS_CAP_RANGE,
+    STATUS_OVERRUN,
+    cobs_decode,
+    cobs_encode,
+    encode_data_frame,
+    encode_reply_frame,
+    split_tag,
+)
+from model import kernel as k
+from model.plant import InputMode, Plant
+from rig.config import Sensors
+
+Source = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""True (θ_m, θ_l) [rad] at an array of device times [s] (one frame's samples at a time)."""
+
+IDEAL_ENCODER_COUNTS_PER_REV = 2**24
+"""What `from_sensors` gives a board whose rig file says 0 (ideal): a board has whole counts."""
+MAX_SAMPLES_PER_FRAME = 100
+MIN_PERIOD_US, MAX_PERIOD_US = 50, 1_000_000  # 20 kHz .. 1 Hz
+POLL_S = 0.02  # the device thread's longest sleep: how fast close() is noticed
+_I32 = 2**31
+
+
+class PlantStateSource:
+    """The present state of a plant stepped by someone else (the CANopen twin).
+
+    The twin asks when a frame's last sample is due, so all samples of a frame get the state of that
+    moment: use BLOCK 1 for one reading per sample. The compiled kernel holds the GIL while it
+    integrates, so a read never sees half a step.
+    """
+
+    def __init__(self, plant: Plant) -> None:
+        self.plant = plant
+
+    def __call__(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = self.plant.x
+        return np.full(t_s.shape, x[k.X_THETA_M]), np.full(t_s.shape, x[k.X_THETA_L])
+
+
+class SteppedPlantSource:
+    """A plant this source steps itself, under `drive(t)` (vectorized over step times [s]), from the
+    device time of its first call: a standalone twin with real plant motion."""
+
+    def __init__(
+        self,
+        plant: Plant,
+        drive: Callable[[np.ndarray], np.ndarray],
+        mode: InputMode = "voltage",
+        dt_s: float = 1e-4,
+    ) -> None:
+        self.plant, self.drive, self.mode, self.dt_s = plant, drive, mode, dt_s
+        self._device_minus_plant_s: float | None = None
+
+    def __call__(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = self.plant.x
+        if self._device_minus_plant_s is None:
+            self._device_minus_plant_s = float(t_s[0]) - float(x[k.X_TIME])
+        theta_m, theta_l = np.empty(t_s.shape), np.empty(t_s.shape)
+        for i, t in enumerate(t_s):
+            steps = round((t - self._device_minus_plant_s - x[k.X_TIME]) / self.dt_s)
+            if steps > 0:
+                step_times = self._device_minus_plant_s + x[k.X_TIME] + self.dt_s * np.arange(steps)
+                self.plant.advance(self.drive(step_times), self.mode, dt_s=self.dt_s, decim=steps)
+            theta_m[i], theta_l[i] = x[k.X_THETA_M], x[k.X_THETA_L]
+        return theta_m, theta_l
+
+
+class _RefusedError(Exception):
+    def __init__(self, code: int, text: str) -> None:
+        super().__init__(text)
+        self.code = code
+
+
+class _Line(Protocol):
+    url: str
+
+    def read_fds(self) -> list[int]: ...
+
+    def write_fd(self) -> int | None: ...
+
+    def receive(self, fd: int) -> bytes: ...
+
+    def send(self, data: bytes) -> int: ...
+
+    def close(self) -> None: ...
+
+
+class _PtyLine:
+    """A pseudo-terminal: the twin holds the master, the host opens the slave's path."""
+
+    def __init__(self) -> None:
+        import tty  # POSIX only, like os.openpty
+
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)  # no echo, no line discipline, before the host opens it
+        os.set_blocking(self.master, False)
+        self.url = os.ttyname(self.slave)
+
+    def read_fds(self) -> list[int]:
+        return [self.master]
+
+    def write_fd(self) -> int | None:
+        return self.master
+
+    def receive(self, fd: int) -> bytes:
+        try:
+            return os.read(self.master, 4096)
+        except (BlockingIOError, InterruptedError):
+            return b""
+
+    def send(self, data: bytes) -> int:
+        try:
+            return os.write(self.master, data)
+        except (BlockingIOError, InterruptedError):
+            return 0
+
+    def close(self) -> None:
+        os.close(self.master)
+        os.close(self.slave)
+
+
+class _SocketLine:
+    """A TCP server on 127.0.0.1 (only): one host at a time, through pyserial's socket:// handler."""
+
+    def __init__(self) -> None:
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.listener.setblocking(False)
+        self.url = f"socket://127.0.0.1:{self.listener.getsockname()[1]}"
+        self.conn: socket.socket | None = None
+
+    def read_fds(self) -> list[int]:
+        fds = [self.listener.fileno()]
+        return [*fds, self.conn.fileno()] if self.conn is not None else fds
+
+    def write_fd(self) -> int | None:
+        return self.conn.fileno() if self.conn is not None else None
+
+    def receive(self, fd: int) -> bytes:
+        if fd == self.listener.fileno():
+            try:
+                conn, _ = self.listener.accept()
+            except BlockingIOError:
+                return b""
+            self._drop()
+            conn.setblocking(False)
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self.conn = conn
+            return b""
+        assert self.conn is not None
+        try:
+            data = self.conn.recv(4096)
+        except BlockingIOError:
+            return b""
+        except OSError:
+            data = b""
+        if not data:  # the host closed: wait for the next one
+            self._drop()
+        return data
+
+    def send(self, data: bytes) -> int:
+        if self.conn is None:
+            return len(data)  # nobody on the line: the bytes go nowhere, as on an unplugged UART
+        try:
+            return self.conn.send(data)
+        except BlockingIOError:
+            return 0
+        except OSError:
+            self._drop()
+            return len(data)
+
+    def _drop(self) -> None:
+        if self.conn is not None:
+            self.conn.close()
+            self.conn = None
+
+    def close(self) -> None:
+        self._drop()
+        self.listener.close()
+
+
+class DaqTwin:
+    """The DAQ board, simulated: serves the protocol on `url` from a thread until `close()`."""
+
+    def __init__(
+        self,
+        source: Source,
+        *,
+        transport: Literal["pty", "socket"] = "pty",
+        encoder_counts_per_rev: int = 131072,
+        load_noise_rad: float = 0.0,
+        cap_um_per_count: float = 0.001,
+        lever_radius_m: float = 0.1,
+        seed: int = 0,
+        clock_offset_s: float | None = None,
+        drift_ppm: float = 0.0,
+        serial_number: str = "SIM0001",
+        fifo_bytes: int = 65536,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        """`clock_offset_s`: device clock minus `clock` (None: the device clock starts at 0 now, as a
+        board's does at power-up); `drift_ppm`: how much faster the device clock runs."""
+        self.source = source
+        self.encoder_counts_per_rev = encoder_counts_per_rev
+        self.load_noise_rad = load_noise_rad
+        self.cap_um_per_count = cap_um_per_count
+        self.lever_radius_m = lever_radius_m
+        self.serial_number = serial_number
+        self.fifo_bytes = fifo_bytes
+        self._rng = np.random.default_rng(seed)
+        self._clock = clock
+        self._host0_s = clock()
+        self._device0_s = 0.0 if clock_offset_s is None else self._host0_s + clock_offset_s
+        self._rate_factor = 1.0 + drift_ppm * 1e-6
+
+        self.period_us = 1000
+        self.samples_per_frame = 10
+        self.streaming = False
+        self._seq = 0
+        self._first_us = 0
+        self._overrun = False
+        self._zero_counts = 0
+        self._inbuf = bytearray()
+        self._skipping_line = False
+        self._outbuf = bytearray()
+        self._line_events: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
+        self._commands: dict[str, Callable[[list[str]], str]] = {
+            "ID?": self._id,
+            "RATE": self._rate,
+            "RATE?": lambda args: f"{1e6 / self.period_us:g}",
+            "BLOCK": self._block,
+            "BLOCK?": lambda args: str(self.samples_per_frame),
+            "START": self._start,
+            "STOP": self._stop,
+            "TIME?": lambda args: str(self.device_us()),
+            "ZERO": self._zero,
+            "CAL?": self._cal,
+        }
+
+        self._line: _Line = _PtyLine() if transport == "pty" else _SocketLine()
+        self.url = self._line.url
+        self.error: BaseException | None = None
+        self._closing = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"daq-twin {self.url}", daemon=True)
+        self._thread.start()
+
+    @classmethod
+    def from_sensors(cls, source: Source, sensors: Sensors, **kwargs: object) -> DaqTwin:
+        """A twin with a rig file's encoder resolution, output-angle noise and seed."""
+        counts = sensors.encoder_counts_per_rev or IDEAL_ENCODER_COUNTS_PER_REV
+        return cls(
+            source,
+            encoder_counts_per_rev=counts,
+            load_noise_rad=sensors.load_sensor_noise_rad,
+            seed=sensors.seed,
+            **kwargs,  # type: ignore[arg-type]
+        )
+
+    def device_us(self) -> int:
+        """The device clock [µs]."""
+        return math.floor((self._device0_s + (self._clock() - self._host0_s) * self._rate_factor) * 1e6)
+
+    def inject_garbage(self, data: bytes) -> None:
+        """Put `data` on the line just before the next data frame (tests: line noise)."""
+        self._line_events.put(bytes(data))
+
+    def corrupt_next_frame(self) -> None:
+        """Flip a payload byte of the next data frame after its CRC is computed (tests: a CRC error)."""
+        self._line_events.put(None)
+
+    def close(self) -> None:
+        """Stop the device thread and free the pty or socket; re-raise what ended the thread, if anything."""
+        if not self._closing.is_set():
+            self._closing.set()
+            self._thread.join()
+            self._line.close()
+        if self.error is not None:
+            raise RuntimeError(f"DAQ twin on {self.url} failed") from self.error
+
+    def __enter__(self) -> DaqTwin:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- the device thread --------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            while not self._closing.is_set():
+                wait = POLL_S
+                if self.streaming:
+                    wait = min(wait, max(0.0, (self._due_us(self._seq) - self.device_us()) * 1e-6))
+                write_fd = self._line.write_fd()
+                wants_write = [write_fd] if self._outbuf and write_fd is not None else []
+                readable, _, _ = select.select(self._line.read_fds(), wants_write, [], wait)
+                for fd in readable:
+                    self._on_input(self._line.receive(fd))
+                self._emit_due_frames()
+                self._flush()
+        except BaseException as exc:  # kept for close() to raise in the owner's thread
+            self.error = exc
+
+    def _flush(self) -> None:
+        while self._outbuf:
+            sent = self._line.send(bytes(self._outbuf[:65536]))
+            if sent == 0:
+                return
+            del self._outbuf[:sent]
+
+    def _on_input(self, data: bytes) -> None:
+        self._inbuf += data
+        while (end := self._inbuf.find(b"\n")) >= 0:
+            line = bytes(self._inbuf[:end])
+            del self._inbuf[: end + 1]
+            if self._skipping_line:  # the end of a line already refused as too long
+                self._skipping_line = False
+                continue
+            self._emit_due_frames()  # replies come after every sample already due: the order of events
+            self._outbuf += self._execute(line)
+        if len(self._inbuf) >= MAX_LINE_BYTES:  # no end of line within the limit: refuse it now
+            self._inbuf.clear()
+            self._skipping_line = True
+            self._outbuf += self._too_long()
+
+    @staticmethod
+    def _too_long() -> bytes:
+        return encode_reply_frame(0, f"ERR {ERR_BAD_LINE} line longer than {MAX_LINE_BYTES} bytes")
+
+    def _execute(self, line: bytes) -> bytes:
+        if len(line) + 1 > MAX_LINE_BYTES:
+            return self._too_long()
+        try:
+            text = line.rstrip(b"\r").decode("ascii")
+        except UnicodeDecodeError:
+            return encode_reply_frame(0, f"ERR {ERR_BAD_LINE} not ASCII")
+        try:
+            tag, text = split_tag(text)
+        except ValueError:
+            return encode_reply_frame(0, f"ERR {ERR_BAD_LINE} bad tag in {text[:20]!r}")
+        word, *args = text.split() or [""]
+        handler = self._commands.get(word.upper())
+        if handler is None:
+            return encode_reply_frame(tag, f"ERR {ERR_UNKNOWN_COMMAND} unknown command {word!r}")
+        try:
+            answer = handler(args)
+        except _RefusedError as refusal:
+            return encode_reply_frame(tag, f"ERR {refusal.code} {refusal}")
+        return encode_reply_frame(tag, f"OK {answer}" if answer else "OK")
+
+    # --- commands ------------------------------------------------------------------------------------------
+
+    def _id(self, args: list[str]) -> str:
+        return f"HDRIG-DAQ 1.0 {self.serial_number}"
+
+    def _cal(self, args: list[str]) -> str:
+        return (
+            f"ENC_CPR={self.encoder_counts_per_rev} CAP_UM={self.cap_um_per_count:g}"
+            f" LEVER_M={self.lever_radius_m:g}"
+        )
+
+    def _not_streaming(self) -> None:
+        if self.streaming:
+            raise _RefusedError(ERR_STREAMING, "not allowed while streaming: STOP first")
+
+    @staticmethod
+    def _number(args: list[str], what: str) -> float:
+        try:
+            (text,) = args
+            value = float(text)
+        except ValueError:
+            raise _RefusedError(ERR_BAD_ARGUMENT, f"expected one number: {what}") from None
+        if not math.isfinite(value):
+            raise _RefusedError(ERR_BAD_ARGUMENT, f"expected a finite number: {what}")
+        return value
+
+    def _rate(self, args: list[str]) -> str:
+        self._not_streaming()
+        rate_hz = self._number(args, "samples per second")
+        period = 1e6 / rate_hz if rate_hz > 0 else math.inf
+        if not (MIN_PERIOD_US <= period <= MAX_PERIOD_US and abs(period - round(period)) < 1e-6):
+            raise _RefusedError(
+                ERR_BAD_ARGUMENT,
+                f"rate {rate_hz:g} Hz: must be 1..20000 Hz with a whole number of us per sample",
+            )
+        self.period_us = round(period)
+        return ""
+
+    def _block(self, args: list[str]) -> str:
+        self._not_streaming()
+        n = self._number(args, "samples per frame")
+        if n != int(n) or not 1 <= n <= MAX_SAMPLES_PER_FRAME:
+            raise _RefusedError(
+                ERR_BAD_ARGUMENT, f"{n:g} samples per frame: must be 1..{MAX_SAMPLES_PER_FRAME}"
+            )
+        self.samples_per_frame = int(n)
+        return ""
+
+    def _start(self, args: list[str]) -> str:
+        if self.streaming:
+            raise _RefusedError(ERR_STREAMING, "already streaming")
+        self._seq = 0
+        self._overrun = False
+        self._first_us = self.device_us() + self.period_us
+        self.streaming = True
+        return ""
+
+    def _stop(self, args: list[str]) -> str:
+        if not self.streaming:
+            return "0 0"
+        self.streaming = False
+        return f"{self._seq} {self._seq * self.samples_per_frame}"
+
+    def _zero(self, args: list[str]) -> str:
+        self._not_streaming()
+        theta_m, _ = self.source(np.array([self.device_us() * 1e-6]))
+        self._zero_counts = int(self._raw_counts(theta_m)[0])
+        return ""
+
+    # --- sampling ------------------------------------------------------------------------------------------
+
+    def _due_us(self, seq: int) -> int:
+        return self._first_us + ((seq + 1) * self.samples_per_frame - 1) * self.period_us
+
+    def _emit_due_frames(self) -> None:
+        if not self.streaming:
+            return
+        now_us = self.device_us()
+        while self._due_us(self._seq) <= now_us:
+            if len(self._outbuf) > self.fifo_bytes:
+                self._overrun = True  # the FIFO is full: this frame is lost, its number used up
+            else:
+                self._outbuf += self._frame(self._seq)
+            self._seq += 1
+
+    def _raw_counts(self, theta_m: np.ndarray) -> np.ndarray:
+        return np.floor(theta_m * (self.encoder_counts_per_rev / (2 * math.pi)) + 0.5).astype(np.int64)
+
+    def _frame(self, seq: int) -> bytes:
+        n, period = self.samples_per_frame, self.period_us
+        t_us = self._first_us + (seq * n + np.arange(n)) * period
+        theta_m, theta_l = self.source(t_us * 1e-6)
+        counts = self._raw_counts(np.asarray(theta_m)) - self._zero_counts
+        noisy_l = np.asarray(theta_l) + self.load_noise_rad * self._rng.standard_normal(n)
+        cap = np.rint(noisy_l * (self.lever_radius_m * 1e6 / self.cap_um_per_count))
+        samples = np.zeros(n, SAMPLE_DTYPE)
+        samples["encoder"] = (counts + _I32) % (2 * _I32) - _I32  # the board's i32 counter wraps
+        samples["cap"] = np.clip(cap, -_I32, _I32 - 1)
+        samples["status"] = np.where(np.abs(cap) >= _I32, STATUS_CAP_RANGE, 0)
+        if self._overrun:
+            samples["status"][0] |= STATUS_OVERRUN
+            self._overrun = False
+        frame = encode_data_frame(seq, int(t_us[0]), period, samples)
+        while not self._line_events.empty():
+            event = self._line_events.get()
+            if event is None:
+                raw = bytearray(cobs_decode(frame[:-1]))
+                raw[-5] ^= 0xFF  # the last sample's status byte: the CRC no longer matches
+                frame = cobs_encode(bytes(raw)) + b"\x00"
+            else:
+                self._outbuf += event
+        return frame
