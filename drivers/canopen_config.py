@@ -1,0 +1,421 @@
+"""What the CANopen servo driver is told (a rig config's `canopen:` section) and what it writes.
+
+The configuration a drive receives at boot and at each mode change is computed offline, as a list of
+SDO writes checked against the drive's EDS/DCF, before anything is sent. The same plan therefore
+serves the driver, the tests (asserting the bytes) and a vendor EDS check with no drive attached.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import canopen
+from canopen.objectdictionary import ObjectDictionary, ODVariable
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from drivers.can_bus import BusSettings
+from drivers.cia402 import TARGET_OBJECT, OperationMode
+from drivers.pdo_layout import PDO_MAX_BITS, PdoEntry, PdoLayout, od_variable
+from model.errors import UserInputError, describe_validation_error
+from rig.config import RigConfig
+
+EDS_DIR = Path(__file__).resolve().parent.parent / "configs" / "eds"
+
+PDO_INVALID = 1 << 31
+SYNCHRONOUS = 1  # transmission type: every SYNC (TPDO), applied at the next SYNC (RPDO)
+RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
+
+# What the driver reads back each cycle: statusword and mode display, torque and current (where the
+# drive has them) in the first TPDO, position and velocity in the second.
+TPDO1_OBJECTS = ((0x6041, 0), (0x6061, 0), (0x6077, 0), (0x6078, 0))
+TPDO1_REQUIRED = {0x6041}
+TPDO2_OBJECTS = ((0x6064, 0), (0x606C, 0))
+REQUIRED_OBJECTS = {
+    0x6040: "controlword",
+    0x6041: "statusword",
+    0x6060: "modes of operation",
+    0x6064: "position actual value",
+    0x606C: "velocity actual value",
+    RPDO_COMM: "RPDO 1 communication",
+    RPDO_MAP: "RPDO 1 mapping",
+    TPDO_COMM: "TPDO 1 communication",
+    TPDO_MAP: "TPDO 1 mapping",
+    TPDO_COMM + 1: "TPDO 2 communication",
+    TPDO_MAP + 1: "TPDO 2 mapping",
+}
+
+
+class CanopenConfigError(UserInputError):
+    """The `canopen:` settings or the EDS cannot drive this servo; one line naming the field or object."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ScalingSettings(_Section):
+    """From the drive's units to SI. Left empty, a value is read from the drive's object."""
+
+    torque_constant_nm_per_a: float = Field(gt=0, description="motor torque per ampere, for CST targets")
+    position_units_per_rev: float | None = Field(
+        default=None, gt=0, description="position units per motor revolution; default: 0x608F:1 / 0x608F:2"
+    )
+    velocity_units_per_rad_s: float | None = Field(
+        default=None, gt=0, description="velocity units per rad/s; default: position units per second"
+    )
+    rated_torque_nm: float | None = Field(
+        default=None, gt=0, description="motor rated torque, the 1000 ‰ of torque objects; default: 0x6076"
+    )
+    rated_current_a: float | None = Field(
+        default=None, gt=0, description="motor rated current, the 1000 ‰ of current objects; default: 0x6075"
+    )
+
+
+class CanopenSettings(BusSettings):
+    """A rig config's `canopen:` section: the bus, the node, its EDS, heartbeats, scaling."""
+
+    eds: str = Field(description="the drive's EDS or DCF file: a path, or a file name in configs/eds")
+    node_id: int = Field(ge=1, le=127, description="the drive's node id")
+    host_node_id: int = Field(default=127, ge=1, le=127, description="node id of the host's heartbeat")
+    drive_heartbeat_ms: int = Field(default=100, ge=1, le=65535, description="the drive's heartbeat (0x1017)")
+    drive_heartbeat_timeout_ms: int = Field(
+        default=350, gt=0, description="host side: the drive is lost after this long without a heartbeat"
+    )
+    host_heartbeat_ms: int = Field(default=50, gt=0, description="period of the host's own heartbeat")
+    host_heartbeat_timeout_ms: int = Field(
+        default=200, ge=1, le=65535, description="drive side (0x1016): it stops after this long without one"
+    )
+    sync_timeout_s: float | None = Field(
+        default=None, gt=0, description="wait for the TPDOs answering a SYNC; default: 10 cycles, ≥ 20 ms"
+    )
+    sdo_timeout_s: float = Field(default=0.5, gt=0, description="SDO response timeout [s]")
+    boot_timeout_s: float = Field(default=5.0, gt=0, description="wait for the boot-up message [s]")
+    reset_on_boot: bool = Field(default=True, description="send NMT reset node at boot")
+    pace: bool = Field(default=True, description="hold the SYNC period in cycle(); off: SYNC on demand")
+    scaling: ScalingSettings
+
+    @model_validator(mode="after")
+    def _consistent(self) -> CanopenSettings:
+        if self.host_node_id == self.node_id:
+            raise ValueError("host_node_id must differ from the drive's node_id")
+        if self.host_heartbeat_timeout_ms <= self.host_heartbeat_ms:
+            raise ValueError("host_heartbeat_timeout_ms must be longer than host_heartbeat_ms")
+        if self.drive_heartbeat_timeout_ms <= self.drive_heartbeat_ms:
+            raise ValueError("drive_heartbeat_timeout_ms must be longer than drive_heartbeat_ms")
+        return self
+
+    @classmethod
+    def from_rig_config(cls, config: RigConfig) -> CanopenSettings:
+        section = config.extra.get("canopen")
+        if not isinstance(section, dict):
+            raise CanopenConfigError(f"rig {config.name!r}: a `canopen:` section is needed for this backend")
+        try:
+            return cls.model_validate(section)
+        except ValidationError as exc:
+            where = f"rig {config.name!r}: canopen"
+            raise CanopenConfigError(f"{where} {describe_validation_error(exc)}") from None
+
+    def eds_path(self) -> Path:
+        """The EDS/DCF file: as given, or by name from configs/eds."""
+        path = Path(self.eds)
+        if not path.exists() and not path.is_absolute() and (EDS_DIR / path).exists():
+            path = EDS_DIR / path
+        if not path.exists():
+            raise CanopenConfigError(f"canopen.eds: no such file {self.eds!r} (nor in {EDS_DIR})")
+        return path
+
+    def object_dictionary(self) -> ObjectDictionary:
+        path = self.eds_path()
+        try:
+            return canopen.import_od(str(path), self.node_id)
+        except (OSError, ValueError, KeyError) as exc:
+            raise CanopenConfigError(f"{path}: not a readable EDS/DCF file: {exc}") from None
+
+
+@dataclass(frozen=True)
+class DriveLimits:
+    """The saturation the drive is given (0x6072/0x6073/0x607F/0x6080), motor side, SI."""
+
+    current_a: float
+    velocity_rad_s: float
+
+    @classmethod
+    def from_rig_config(cls, config: RigConfig) -> DriveLimits:
+        return cls(config.control.current_limit_a, config.control.max_velocity_rad_s)
+
+
+@dataclass(frozen=True)
+class Scaling:
+    """Raw drive units ↔ motor-side SI units."""
+
+    position_units_per_rad: float
+    velocity_units_per_rad_s: float
+    rated_torque_nm: float
+    rated_current_a: float | None
+    torque_constant_nm_per_a: float
+
+    def position_rad(self, raw: int) -> float:
+        return raw / self.position_units_per_rad
+
+    def position_raw(self, rad: float) -> int:
+        return round(rad * self.position_units_per_rad)
+
+    def velocity_rad_s(self, raw: int) -> float:
+        return raw / self.velocity_units_per_rad_s
+
+    def velocity_raw(self, rad_s: float) -> int:
+        return round(rad_s * self.velocity_units_per_rad_s)
+
+    def torque_nm(self, permille: int) -> float:
+        return permille * self.rated_torque_nm / 1000.0
+
+    def torque_permille(self, torque_nm: float) -> int:
+        return round(torque_nm / self.rated_torque_nm * 1000.0)
+
+    def current_a(self, permille: int) -> float:
+        if self.rated_current_a is None:
+            raise ValueError("no rated current: current objects cannot be scaled")
+        return permille * self.rated_current_a / 1000.0
+
+    def current_permille(self, current_a: float) -> int:
+        if self.rated_current_a is None:
+            raise ValueError("no rated current: current objects cannot be scaled")
+        return round(current_a / self.rated_current_a * 1000.0)
+
+
+ObjectReader = Callable[[int, int], int]
+"""Reads an object's value (index, sub-index) from the drive: SDO upload on a bus, a default offline."""
+
+
+def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: ObjectReader) -> Scaling:
+    """Fill the scaling the settings leave open from the drive's objects; name what is missing."""
+
+    def from_drive(field: str, index: int, sub: int, what: str) -> int:
+        if not _has(od, index, sub):
+            raise CanopenConfigError(
+                f"canopen.scaling.{field} is needed: the EDS has no 0x{index:04X}:{sub:02X} ({what})"
+            )
+        value = read(index, sub)
+        if value <= 0:
+            raise CanopenConfigError(
+                f"canopen.scaling.{field} is needed: the drive's 0x{index:04X}:{sub:02X} ({what}) is {value}"
+            )
+        return value
+
+    per_rev = settings.position_units_per_rev
+    if per_rev is None:
+        per_rev = from_drive("position_units_per_rev", 0x608F, 1, "encoder increments") / from_drive(
+            "position_units_per_rev", 0x608F, 2, "motor revolutions"
+        )
+    position_per_rad = per_rev / (2 * math.pi)
+    rated_torque = settings.rated_torque_nm
+    if rated_torque is None:
+        rated_torque = from_drive("rated_torque_nm", 0x6076, 0, "motor rated torque, mN·m") / 1000.0
+    rated_current = settings.rated_current_a
+    if rated_current is None and _has(od, 0x6075, 0):
+        rated_current = from_drive("rated_current_a", 0x6075, 0, "motor rated current, mA") / 1000.0
+    return Scaling(
+        position_units_per_rad=position_per_rad,
+        velocity_units_per_rad_s=settings.velocity_units_per_rad_s or position_per_rad,
+        rated_torque_nm=rated_torque,
+        rated_current_a=rated_current,
+        torque_constant_nm_per_a=settings.torque_constant_nm_per_a,
+    )
+
+
+def _has(od: ObjectDictionary, index: int, subindex: int = 0) -> bool:
+    try:
+        od_variable(od, index, subindex)
+    except KeyError:
+        return False
+    return True
+
+
+@dataclass(frozen=True)
+class SdoWrite:
+    """One expedited SDO download of the configuration: where, what value, and why."""
+
+    index: int
+    subindex: int
+    value: int
+    why: str
+
+    def data(self, od: ObjectDictionary) -> bytes:
+        """The bytes of the download, sized by the object's data type."""
+        return od_variable(od, self.index, self.subindex).encode_raw(self.value)
+
+    def __str__(self) -> str:
+        return f"0x{self.index:04X}:{self.subindex:02X} = {self.value} ({self.why})"
+
+
+@dataclass(frozen=True)
+class PdoPlan:
+    """The mapping the driver gives the drive: COB-ID and layout of RPDO 1 and TPDOs 1-2."""
+
+    rpdo: PdoLayout
+    tpdo1: PdoLayout
+    tpdo2: PdoLayout
+    node_id: int
+
+    @property
+    def rpdo_cob_id(self) -> int:
+        return 0x200 + self.node_id
+
+    @property
+    def tpdo_cob_ids(self) -> tuple[int, int]:
+        return 0x180 + self.node_id, 0x280 + self.node_id
+
+
+def tpdo_layouts(od: ObjectDictionary) -> tuple[PdoLayout, PdoLayout]:
+    """The feedback TPDOs: the objects of TPDO1_OBJECTS/TPDO2_OBJECTS the drive has."""
+    missing = sorted(i for i in REQUIRED_OBJECTS if i not in od)
+    if missing:
+        names = ", ".join(f"0x{i:04X} ({REQUIRED_OBJECTS[i]})" for i in missing)
+        raise CanopenConfigError(f"the EDS lacks what a CiA 402 servo needs here: {names}")
+    tpdo1 = PdoLayout.of_objects(od, [o for o in TPDO1_OBJECTS if _has(od, *o)])
+    return tpdo1, PdoLayout.of_objects(od, list(TPDO2_OBJECTS))
+
+
+def rpdo_layout(od: ObjectDictionary, mode: OperationMode) -> PdoLayout:
+    """RPDO 1 for a mode: controlword + the mode's target."""
+    target = TARGET_OBJECT[mode]
+    if target not in od:
+        raise CanopenConfigError(f"the EDS has no 0x{target:04X}, the target object of {mode.name}")
+    return PdoLayout.of_objects(od, [(0x6040, 0), (target, 0)])
+
+
+def _pdo_writes(
+    od: ObjectDictionary, comm: int, mapping: int, cob_id: int, layout: PdoLayout
+) -> list[SdoWrite]:
+    """Remap one PDO the CiA 301 way: invalidate, set type, clear, fill, count, validate."""
+    name = f"{'RPDO' if comm < TPDO_COMM else 'TPDO'} {comm % 0x200 + 1}"
+    writes = [SdoWrite(comm, 1, cob_id | PDO_INVALID, f"{name} off while remapped")]
+    if _has(od, comm, 2):
+        writes.append(SdoWrite(comm, 2, SYNCHRONOUS, f"{name} synchronous"))
+    writes.append(SdoWrite(mapping, 0, 0, f"{name} mapping cleared"))
+    writes += [
+        SdoWrite(mapping, n, entry.mapping_value, f"{name} maps {entry}")
+        for n, entry in enumerate(layout.entries, start=1)
+    ]
+    writes.append(SdoWrite(mapping, 0, len(layout.entries), f"{name} has {len(layout.entries)} objects"))
+    writes.append(SdoWrite(comm, 1, cob_id, f"{name} on at COB-ID 0x{cob_id:03X}"))
+    return writes
+
+
+def _pdo_numbers(od: ObjectDictionary, comm_base: int) -> list[int]:
+    return [n for n in range(512) if comm_base + n in od]
+
+
+def boot_plan(
+    od: ObjectDictionary,
+    settings: CanopenSettings,
+    limits: DriveLimits,
+    scaling: Scaling,
+    period_s: float,
+) -> list[SdoWrite]:
+    """Everything written at boot (in PRE-OPERATIONAL), in order; objects the drive lacks are skipped.
+
+    Heartbeats both ways, the SYNC period, the limits, every PDO off, then the two feedback TPDOs on.
+    RPDO 1 follows the mode (`mode_plan`).
+    """
+    writes: list[SdoWrite] = []
+    if _has(od, 0x1017):
+        writes.append(SdoWrite(0x1017, 0, settings.drive_heartbeat_ms, "drive heartbeat period, ms"))
+    if _has(od, 0x1016, 1):
+        consumer = settings.host_node_id << 16 | settings.host_heartbeat_timeout_ms
+        writes.append(SdoWrite(0x1016, 1, consumer, f"stop without host {settings.host_node_id}'s heartbeat"))
+    if _has(od, 0x1006):
+        writes.append(SdoWrite(0x1006, 0, round(period_s * 1e6), "SYNC period, µs"))
+    writes += _limit_writes(od, limits, scaling)
+    tpdo1, tpdo2 = tpdo_layouts(od)
+    unused = [RPDO_COMM + n for n in _pdo_numbers(od, RPDO_COMM)]
+    unused += [TPDO_COMM + n for n in _pdo_numbers(od, TPDO_COMM)[2:]]
+    for comm in unused:
+        name = f"{'RPDO' if comm < TPDO_COMM else 'TPDO'} {comm % 0x200 + 1}"
+        writes.append(SdoWrite(comm, 1, _default_cob_id(od, comm) | PDO_INVALID, f"{name} off"))
+    writes += _pdo_writes(od, TPDO_COMM, TPDO_MAP, 0x180 + settings.node_id, tpdo1)
+    writes += _pdo_writes(od, TPDO_COMM + 1, TPDO_MAP + 1, 0x280 + settings.node_id, tpdo2)
+    return writes
+
+
+def mode_plan(od: ObjectDictionary, node_id: int, mode: OperationMode) -> list[SdoWrite]:
+    """What a mode change writes: RPDO 1 remapped to controlword + target, then the mode."""
+    writes = _pdo_writes(od, RPDO_COMM, RPDO_MAP, 0x200 + node_id, rpdo_layout(od, mode))
+    writes.append(SdoWrite(0x6060, 0, int(mode), f"mode of operation {mode.name}"))
+    return writes
+
+
+def _default_cob_id(od: ObjectDictionary, comm: int) -> int:
+    default = od_variable(od, comm, 1).default
+    return int(default) & 0x7FF if isinstance(default, int) else 0
+
+
+def _limit_writes(od: ObjectDictionary, limits: DriveLimits, scaling: Scaling) -> list[SdoWrite]:
+    writes = []
+    if _has(od, 0x6072):
+        torque = scaling.torque_permille(limits.current_a * scaling.torque_constant_nm_per_a)
+        writes.append(SdoWrite(0x6072, 0, torque, f"max torque ‰ = {limits.current_a:g} A"))
+    if _has(od, 0x6073) and scaling.rated_current_a is not None:
+        current = scaling.current_permille(limits.current_a)
+        writes.append(SdoWrite(0x6073, 0, current, f"max current ‰ = {limits.current_a:g} A"))
+    if _has(od, 0x607F):
+        velocity = scaling.velocity_raw(limits.velocity_rad_s)
+        writes.append(SdoWrite(0x607F, 0, velocity, f"max profile velocity, {limits.velocity_rad_s:g} rad/s"))
+    if _has(od, 0x6080):
+        rpm = round(limits.velocity_rad_s * 60 / (2 * math.pi))
+        writes.append(SdoWrite(0x6080, 0, rpm, f"max motor speed, rpm = {limits.velocity_rad_s:g} rad/s"))
+    return writes
+
+
+def check_plan(od: ObjectDictionary, plan: Sequence[SdoWrite]) -> list[str]:
+    """What in a plan the object dictionary refuses: missing, read-only, out of range, unmappable.
+
+    An empty list means every write names an existing writable object with a value its type holds and
+    every mapping entry a PDO-mappable object, within 64 bits per PDO.
+    """
+    problems: list[str] = []
+    mapped_bits: dict[int, int] = {}
+    for write in plan:
+        try:
+            var = od_variable(od, write.index, write.subindex)
+        except KeyError:
+            problems.append(f"{write}: no such object")
+            continue
+        if not var.writable:
+            problems.append(f"{write}: not writable ({var.access_type})")
+        problems += _range_problems(var, write)
+        if is_mapping_object(write.index) and write.subindex > 0:
+            entry = PdoEntry.from_mapping_value(write.value)
+            try:
+                mapped = od_variable(od, entry.index, entry.subindex)
+            except KeyError:
+                problems.append(f"{write}: maps an object the EDS lacks")
+                continue
+            if not mapped.pdo_mappable:
+                problems.append(f"{write}: 0x{entry.index:04X} is not PDO-mappable")
+            mapped_bits[write.index] = mapped_bits.get(write.index, 0) + entry.bits
+    problems += [
+        f"0x{index:04X}: {bits} bits mapped, more than {PDO_MAX_BITS}"
+        for index, bits in mapped_bits.items()
+        if bits > PDO_MAX_BITS
+    ]
+    return problems
+
+
+def is_mapping_object(index: int) -> bool:
+    """An RPDO (0x1600-0x17FF) or TPDO (0x1A00-0x1BFF) mapping parameter."""
+    return RPDO_MAP <= index < RPDO_MAP + 0x200 or TPDO_MAP <= index < TPDO_MAP + 0x200
+
+
+def _range_problems(var: ODVariable, write: SdoWrite) -> list[str]:
+    try:
+        var.encode_raw(write.value)
+    except Exception as exc:  # struct.error, OverflowError, ValueError: what canopen raises per type
+        return [f"{write}: does not fit {var.name!r}: {exc}"]
+    low, high = var.min, var.max
+    if (low is not None and write.value < low) or (high is not None and write.value > high):
+        return [f"{write}: outside [{low}, {high}] of {var.name!r}"]
+    return []

@@ -1,0 +1,588 @@
+"""A CiA 402 servo drive on CANopen, driven cycle by cycle from the host: one SYNC per cycle.
+
+Built on canopen (SDO, NMT, EMCY, EDS) and python-can (the bus, the raw traffic log), and designed
+around what canopen 2.4 leaves out: the PDOs are mapped from the driver's own plan and packed here
+(no PDO upload over SDO, as `BaseNode402` does); the SYNC is sent by `cycle()` itself rather than by a
+`SyncProducer` thread, so each cycle is one RPDO, one SYNC and the TPDOs answering that very SYNC;
+the drive's heartbeat is watched here, since canopen's master has no heartbeat-consumer timeout.
+
+The driver knows nothing of the rig interface's segments: a rig backend pairs it with its sensors,
+calls `configure(mode)` and then `cycle(target)` once per sample, and asks `faults()` for its health.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Final
+
+import can
+import canopen
+from canopen.emcy import EmcyError
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+
+from drivers.can_bus import PeriodicFrame, RecordedNetwork, open_bus
+from drivers.canopen_config import (
+    CanopenSettings,
+    DriveLimits,
+    PdoPlan,
+    Scaling,
+    SdoWrite,
+    boot_plan,
+    mode_plan,
+    resolve_scaling,
+    rpdo_layout,
+    tpdo_layouts,
+)
+from drivers.cia402 import (
+    CONTROLWORD,
+    Command,
+    OperationMode,
+    State,
+    command_towards,
+    decode_statusword,
+)
+from drivers.pdo_layout import od_variable
+from model.errors import UserInputError
+from rig.config import RigConfig
+from rig.interface import ControlMode
+
+logger = logging.getLogger(__name__)
+
+SYNC_COB_ID: Final = 0x080
+NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL, NMT_RESET_NODE = 0x01, 0x02, 0x80, 0x81
+NMT_OPERATIONAL_STATE: Final = 5
+HOST_HEARTBEAT_STATE: Final = bytes([NMT_OPERATIONAL_STATE])
+
+OPERATION_MODE_FOR: Final[dict[ControlMode, OperationMode]] = {
+    ControlMode.CURRENT: OperationMode.CYCLIC_SYNC_TORQUE,
+    ControlMode.VELOCITY: OperationMode.CYCLIC_SYNC_VELOCITY,
+    ControlMode.POSITION: OperationMode.CYCLIC_SYNC_POSITION,
+}
+"""The rig's motor-side modes on a CiA 402 drive: current as torque (K_m · i), speed, position."""
+
+_INT16, _INT32 = (-(1 << 15), (1 << 15) - 1), (-(1 << 31), (1 << 31) - 1)
+_TPDO1_NAMES: Final = {0x6041: "statusword", 0x6061: "mode", 0x6077: "torque", 0x6078: "current"}
+STANDSTILL_RAD_S: Final = 0.5
+"""Below this motor speed an orderly stop removes power."""
+
+
+class CanopenServoError(UserInputError):
+    """The drive refused, faulted or went silent; one line naming what and where."""
+
+
+class SyncTimeoutError(CanopenServoError):
+    """No TPDO answered a SYNC in time."""
+
+
+class DriveFaultError(CanopenServoError):
+    """The drive is in FAULT (its emergency messages are in the text)."""
+
+
+@dataclass(frozen=True)
+class Feedback:
+    """What the drive reported in answer to one SYNC, in motor-side SI units."""
+
+    t_s: float
+    """Host monotonic clock when the SYNC went out [s]."""
+    latency_s: float
+    """From the SYNC to the last TPDO answering it [s]."""
+    statusword: int
+    state: State | None
+    mode: int | None
+    """Modes of operation display (0x6061), None when the drive does not report it."""
+    position_rad: float
+    velocity_rad_s: float
+    torque_nm: float
+    current_a: float
+    """Current actual (0x6078) when the drive reports it, else torque / K_m [A]."""
+
+    @property
+    def faulted(self) -> bool:
+        return self.state in (State.FAULT, State.FAULT_REACTION_ACTIVE)
+
+
+class CanopenServo:
+    """One CiA 402 drive: boot, configure a mode, enable, cycle, stop; raw traffic to a log file."""
+
+    def __init__(self, settings: CanopenSettings, limits: DriveLimits, period_s: float) -> None:
+        self.settings = settings
+        self.limits = limits
+        self.period_s = period_s
+        self.od = settings.object_dictionary()
+        self._tpdo = tpdo_layouts(self.od)
+        self._tpdo1_names = [_TPDO1_NAMES[e.index] for e in self._tpdo[0].entries]
+        self._plan: PdoPlan | None = None
+        self.sync_timeout_s = settings.sync_timeout_s or max(10 * period_s, 0.02)
+        self.network: RecordedNetwork | None = None
+        self.node: canopen.RemoteNode | None = None
+        self.scaling: Scaling | None = None
+        self.mode: OperationMode | None = None
+        self._heartbeat: PeriodicFrame | None = None
+        # Receive side, filled by the network's notifier thread.
+        self._rx = threading.Condition()
+        self._tpdo_values: list[tuple[int, ...] | None] = [None, None]
+        self._tpdo_counts = [0, 0]
+        self._tpdo_t_s = [0.0, 0.0]
+        self._drive_heartbeat_t_s: float | None = None
+        self._drive_nmt_state: int | None = None
+        self._started_t_s: float | None = None  # when NMT START was last sent
+        self._silent = False  # the last cycle went unanswered
+        self._booted = threading.Event()
+        self._emcy_active: list[str] = []
+        self._emcy_lock = threading.Lock()
+        # Cycle side.
+        self._cycle_lock = threading.Lock()
+        self._controlword = CONTROLWORD[Command.DISABLE_VOLTAGE]
+        self._hold_raw = 0
+        self._quick_stop_latched = False
+        self._next_sync_t_s: float | None = None
+        self._last: Feedback | None = None
+
+    @classmethod
+    def from_rig_config(cls, config: RigConfig) -> CanopenServo:
+        """The servo a rig config's `canopen:` section describes, limited by its `control:` section."""
+        settings = CanopenSettings.from_rig_config(config)
+        return cls(settings, DriveLimits.from_rig_config(config), 1.0 / config.sample_rate_hz)
+
+    # --- connection and boot ----------------------------------------------------------------------
+
+    def connect(self, bus: can.BusABC | None = None, log_path: Path | None = None) -> None:
+        """Open the bus (or use `bus`), start the raw traffic log at `log_path` (.blf/.asc), if given."""
+        if self.network is not None:
+            raise CanopenServoError(f"node {self.settings.node_id}: already connected")
+        network = RecordedNetwork(bus if bus is not None else open_bus(self.settings))
+        network.recorder.record_to(log_path)
+        network.connect()
+        node = canopen.RemoteNode(self.settings.node_id, self.od)
+        network.add_node(node)
+        node.sdo.RESPONSE_TIMEOUT = self.settings.sdo_timeout_s
+        node.nmt.add_heartbeat_callback(self._on_heartbeat)
+        node.emcy.add_callback(self._on_emcy)
+        node_id = self.settings.node_id
+        for n, cob_id in enumerate((0x180 + node_id, 0x280 + node_id)):
+            network.subscribe(cob_id, self._tpdo_callback(n))
+        self.network, self.node = network, node
+
+    def boot(self) -> None:
+        """Reset the node, configure heartbeats, limits and feedback PDOs, start it (NMT OPERATIONAL)."""
+        network, node = self._connected()
+        if self.settings.reset_on_boot:
+            self._booted.clear()
+            node.nmt.send_command(NMT_RESET_NODE)
+            if not self._booted.wait(self.settings.boot_timeout_s):
+                timeout = self.settings.boot_timeout_s
+                raise CanopenServoError(f"node {node.id}: no boot-up message within {timeout} s of NMT reset")
+        else:
+            node.nmt.send_command(NMT_PRE_OPERATIONAL)
+        if self._heartbeat is None:
+            # From a thread of this process: if it hangs or dies, the drive's consumer stops the drive.
+            period_s = self.settings.host_heartbeat_ms / 1000.0
+            cob_id = 0x700 + self.settings.host_node_id
+            self._heartbeat = network.send_periodic(cob_id, HOST_HEARTBEAT_STATE, period_s)
+        self.scaling = resolve_scaling(self.settings.scaling, self.od, self._read)
+        self._plan, self.mode, self._last = None, None, None  # RPDO 1 is off until configure()
+        self._write(boot_plan(self.od, self.settings, self.limits, self.scaling, self.period_s))
+        self._start_node()
+
+    def configure(self, mode: OperationMode | ControlMode) -> None:
+        """Switch to a mode (CST for current, CSV, CSP, or PV): remap RPDO 1, set 0x6060, confirm.
+
+        The drive must not be OPERATION ENABLED: disable it first (a remap while powered is refused).
+        """
+        _network, node = self._connected()
+        op_mode = _operation_mode(mode)
+        if self._last is not None and self._last.state == State.OPERATION_ENABLED:
+            raise CanopenServoError(f"node {node.id}: disable the drive before switching to {op_mode.name}")
+        node.nmt.send_command(NMT_PRE_OPERATIONAL)
+        self._started_t_s = None
+        self._write(mode_plan(self.od, self.settings.node_id, op_mode))
+        tpdo1, tpdo2 = self._tpdo
+        self._plan = PdoPlan(rpdo_layout(self.od, op_mode), tpdo1, tpdo2, self.settings.node_id)
+        self.mode = op_mode
+        self._start_node()
+        feedback = self._first_answer()
+        self._hold_raw = self._hold_target(feedback)
+        if "mode" in self._tpdo1_names:
+            for _ in range(10):
+                if feedback.mode == int(op_mode):
+                    break
+                feedback = self._exchange(self._controlword, self._hold_raw)
+            else:
+                raise CanopenServoError(
+                    f"node {node.id}: mode {op_mode.name} not confirmed (0x6061 reads {feedback.mode})"
+                )
+
+    def _first_answer(self) -> Feedback:
+        """The first cycle after NMT START: a drive may take a few ms before its PDOs run."""
+        deadline = time.monotonic() + self.settings.boot_timeout_s
+        while True:
+            try:
+                return self._exchange(self._controlword, 0)
+            except SyncTimeoutError:
+                if time.monotonic() > deadline:
+                    raise
+
+    def set_profile(self, acceleration_rad_s2: float, deceleration_rad_s2: float | None = None) -> None:
+        """Profile velocity ramps (0x6083/0x6084) [rad/s²], for PV."""
+        scaling = self._scaling()
+        decel = deceleration_rad_s2 if deceleration_rad_s2 is not None else acceleration_rad_s2
+        self._write(
+            [
+                SdoWrite(0x6083, 0, scaling.velocity_raw(acceleration_rad_s2), "profile acceleration"),
+                SdoWrite(0x6084, 0, scaling.velocity_raw(decel), "profile deceleration"),
+            ]
+        )
+
+    # --- the state machine ------------------------------------------------------------------------
+
+    def enable(self, timeout_s: float = 1.0) -> Feedback:
+        """Walk the drive to OPERATION ENABLED (holding position in CSP, zero otherwise).
+
+        Clears a previous quick stop; a drive in FAULT is not reset here (`reset_fault()`).
+        """
+        self._plan_or_raise()
+        self._quick_stop_latched = False
+        feedback = self._walk_to(State.OPERATION_ENABLED, timeout_s)
+        self._controlword = CONTROLWORD[Command.ENABLE_OPERATION]
+        return feedback
+
+    def disable(self, timeout_s: float = 1.0) -> Feedback:
+        """Orderly stop: bring the speed to zero in velocity modes, then remove power (SWITCH ON DISABLED)."""
+        self._plan_or_raise()
+        if self.mode in (OperationMode.CYCLIC_SYNC_VELOCITY, OperationMode.PROFILE_VELOCITY):
+            deadline = time.monotonic() + timeout_s
+            feedback = self._exchange(self._controlword, 0)
+            moving = abs(feedback.velocity_rad_s) > STANDSTILL_RAD_S
+            while feedback.state == State.OPERATION_ENABLED and moving and time.monotonic() < deadline:
+                feedback = self._exchange(self._controlword, 0)
+                moving = abs(feedback.velocity_rad_s) > STANDSTILL_RAD_S
+        feedback = self._walk_to(State.SWITCH_ON_DISABLED, timeout_s)
+        self._controlword = CONTROLWORD[Command.DISABLE_VOLTAGE]
+        return feedback
+
+    def quick_stop(self) -> None:
+        """Defensive stop, from any thread, in any state, any number of times; never raises.
+
+        Latches the quick-stop controlword (every later cycle sends it until `enable()`), sees a cycle
+        carry it, and sends NMT STOP when the drive does not confirm.
+        """
+        self._quick_stop_latched = True
+        confirmed = False
+        try:
+            confirmed = self._plan is not None and self._confirm_quick_stop()
+        except Exception as exc:  # the defensive path must go on to NMT STOP whatever failed here
+            logger.warning("quick stop: controlword not confirmed: %s", exc)
+        if not confirmed and self.node is not None:
+            try:
+                self.node.nmt.send_command(NMT_STOP)
+            except Exception as exc:  # a dead bus: nothing more this host can do
+                logger.error("quick stop: NMT STOP not sent: %s", exc)
+
+    def _confirm_quick_stop(self) -> bool:
+        """Send the quick stop in a cycle of our own or, while another thread is cycling (it holds the
+        bus and sends the latched controlword in its next cycle), see one of its answers confirm it."""
+        deadline = time.monotonic() + self.sync_timeout_s + 2 * self.period_s
+        seen = self._last
+        while time.monotonic() < deadline:
+            if self._cycle_lock.acquire(timeout=self.period_s):
+                try:
+                    stop = CONTROLWORD[Command.QUICK_STOP]
+                    return (
+                        self._exchange_locked(stop, self._hold_raw, pace=False).state
+                        != State.OPERATION_ENABLED
+                    )
+                finally:
+                    self._cycle_lock.release()
+            last = self._last
+            if last is not seen and last is not None and last.state != State.OPERATION_ENABLED:
+                return True
+        return False
+
+    def reset_fault(self, timeout_s: float = 1.0) -> Feedback:
+        """Fault reset (rising edge of controlword bit 7) to SWITCH ON DISABLED; clears the EMCY list."""
+        self._plan_or_raise()
+        feedback = self._exchange(CONTROLWORD[Command.DISABLE_VOLTAGE], self._hold_raw)
+        deadline = time.monotonic() + timeout_s
+        while feedback.faulted:
+            if time.monotonic() > deadline:
+                faults = "; ".join(self.faults())
+                raise DriveFaultError(f"node {self.settings.node_id}: fault not reset: {faults}")
+            feedback = self._exchange(CONTROLWORD[Command.FAULT_RESET], self._hold_raw)
+        self._controlword = CONTROLWORD[Command.DISABLE_VOLTAGE]
+        feedback = self._exchange(self._controlword, self._hold_raw)
+        with self._emcy_lock:
+            self._emcy_active.clear()
+        return feedback
+
+    # --- the cycle --------------------------------------------------------------------------------
+
+    def cycle(self, target: float) -> Feedback:
+        """One control cycle: the target (SI, per mode) in RPDO 1, one SYNC, the answering TPDOs.
+
+        CST: motor current [A] (sent as torque K_m·i in ‰ of rated torque); CSV/PV: motor speed
+        [rad/s]; CSP: motor angle [rad]. Paced to the period unless `pace` is off. Raises SyncTimeoutError
+        when the drive does not answer within `sync_timeout_s`.
+        """
+        self._plan_or_raise()
+        if self._quick_stop_latched:
+            return self._exchange(CONTROLWORD[Command.QUICK_STOP], self._hold_raw)
+        return self._exchange(self._controlword, self._target_raw(target))
+
+    def _target_raw(self, target: float) -> int:
+        scaling, mode = self._scaling(), self.mode
+        if mode == OperationMode.CYCLIC_SYNC_TORQUE:
+            return _clamp(scaling.torque_permille(target * scaling.torque_constant_nm_per_a), _INT16)
+        if mode == OperationMode.CYCLIC_SYNC_POSITION:
+            return _clamp(scaling.position_raw(target), _INT32)
+        return _clamp(scaling.velocity_raw(target), _INT32)
+
+    def _hold_target(self, feedback: Feedback) -> int:
+        """The target that asks for no change: where the motor is in CSP, zero otherwise."""
+        if self.mode == OperationMode.CYCLIC_SYNC_POSITION:
+            return _clamp(self._scaling().position_raw(feedback.position_rad), _INT32)
+        return 0
+
+    def _walk_to(self, target: State, timeout_s: float) -> Feedback:
+        """Send the table's commands towards `target`, one cycle each, until the statusword shows it.
+
+        The first command follows the last state seen; every step is confirmed by a fresh answer.
+        A drive in FAULT is already without torque: walking to SWITCH ON DISABLED leaves it there
+        (`reset_fault()` is the way out), walking elsewhere raises DriveFaultError.
+        """
+        deadline = time.monotonic() + timeout_s
+        controlword = self._controlword
+        last = self._last
+        while True:
+            state = last.state if last is not None else None
+            if last is not None and last.faulted:
+                if target == State.SWITCH_ON_DISABLED:
+                    return last
+                raise DriveFaultError(f"node {self.settings.node_id} is in FAULT: {'; '.join(self.faults())}")
+            command = command_towards(state, target) if state is not None else None
+            if command is not None:
+                controlword = CONTROLWORD[command]
+            if last is not None:
+                self._hold_raw = self._hold_target(last)
+            feedback = self._exchange(controlword, self._hold_raw)
+            if feedback.state == target:
+                self._controlword = controlword
+                return feedback
+            if time.monotonic() > deadline:
+                raise CanopenServoError(
+                    f"node {self.settings.node_id}: still {feedback.state} after {timeout_s} s"
+                    f" (statusword 0x{feedback.statusword:04X}) on the way to {target}"
+                )
+            last = feedback
+
+    def _exchange(self, controlword: int, target_raw: int) -> Feedback:
+        with self._cycle_lock:
+            return self._exchange_locked(controlword, target_raw, pace=self.settings.pace)
+
+    def _exchange_locked(self, controlword: int, target_raw: int, pace: bool) -> Feedback:
+        network, _node = self._connected()
+        plan = self._plan_or_raise()
+        if pace:
+            self._wait_for_period()
+        payload = plan.rpdo.encode((controlword, target_raw))
+        with self._rx:
+            before = list(self._tpdo_counts)
+        network.send_message(plan.rpdo_cob_id, payload)
+        t_sync = time.monotonic()
+        network.send_message(SYNC_COB_ID, b"")
+        with self._rx:
+            answered = self._rx.wait_for(
+                lambda: all(c > b for c, b in zip(self._tpdo_counts, before, strict=True)),
+                timeout=self.sync_timeout_s,
+            )
+            self._silent = not answered
+            if not answered:
+                raise SyncTimeoutError(
+                    f"node {self.settings.node_id}: no TPDO answered the SYNC within"
+                    f" {self.sync_timeout_s * 1e3:.1f} ms ({'; '.join(self.faults()) or 'no fault reported'})"
+                )
+            values1, values2 = self._tpdo_values
+            t_answer = max(self._tpdo_t_s)
+        assert values1 is not None and values2 is not None  # set before the counts moved
+        feedback = self._feedback(t_sync, t_answer - t_sync, values1, values2)
+        self._last = feedback
+        return feedback
+
+    def _wait_for_period(self) -> None:
+        now = time.monotonic()
+        if self._next_sync_t_s is None or now - self._next_sync_t_s > self.period_s:
+            self._next_sync_t_s = now  # first cycle, or late by a period: restart the grid, no burst
+        elif self._next_sync_t_s > now:
+            time.sleep(self._next_sync_t_s - now)
+        self._next_sync_t_s += self.period_s
+
+    def _feedback(
+        self, t_sync: float, latency_s: float, values1: tuple[int, ...], values2: tuple[int, ...]
+    ) -> Feedback:
+        scaling = self._scaling()
+        named = dict(zip(self._tpdo1_names, values1, strict=True))
+        statusword = named["statusword"]
+        torque_nm = scaling.torque_nm(named["torque"]) if "torque" in named else math.nan
+        if "current" in named and scaling.rated_current_a is not None:
+            current_a = scaling.current_a(named["current"])
+        else:
+            current_a = torque_nm / scaling.torque_constant_nm_per_a
+        return Feedback(
+            t_s=t_sync,
+            latency_s=latency_s,
+            statusword=statusword,
+            state=decode_statusword(statusword),
+            mode=named.get("mode"),
+            position_rad=scaling.position_rad(values2[0]),
+            velocity_rad_s=scaling.velocity_rad_s(values2[1]),
+            torque_nm=torque_nm,
+            current_a=current_a,
+        )
+
+    # --- health -----------------------------------------------------------------------------------
+
+    def faults(self) -> list[str]:
+        """What is wrong now: active EMCYs, a FAULT state, a lost or non-operational drive."""
+        with self._emcy_lock:
+            faults = list(self._emcy_active)
+        last = self._last
+        if last is not None and last.faulted:
+            faults.append(f"drive in {last.state} (statusword 0x{last.statusword:04X})")
+        heard = self._drive_heartbeat_t_s
+        if heard is not None:
+            silent_ms = (time.monotonic() - heard) * 1e3
+            if silent_ms > self.settings.drive_heartbeat_timeout_ms:
+                faults.append(f"drive heartbeat lost: none for {silent_ms:.0f} ms")
+            elif self._started_t_s is not None and heard > self._started_t_s and not self._operational():
+                state = canopen.nmt.NMT_STATES.get(self._drive_nmt_state or 0, str(self._drive_nmt_state))
+                faults.append(f"drive NMT state is {state}")
+        return faults
+
+    @property
+    def last_feedback(self) -> Feedback | None:
+        return self._last
+
+    @property
+    def log_path(self) -> Path | None:
+        """Where the raw CAN traffic is being written (None: not recorded)."""
+        return self.network.recorder.path if self.network is not None else None
+
+    def record_to(self, path: Path | None) -> None:
+        """Start a new raw CAN log (.blf or .asc) for the next run; None stops recording."""
+        network, _node = self._connected()
+        network.recorder.record_to(path)
+
+    def close(self) -> None:
+        """Stop the drive if powered, release its heartbeat watch, close the log and the bus."""
+        if self.network is None:
+            return
+        if self._last is not None and self._last.state == State.OPERATION_ENABLED:
+            self.quick_stop()
+        node = self.node
+        if node is not None and self._heartbeat is not None and not self._silent:
+            try:  # let the drive stop watching a host that is leaving on purpose
+                node.sdo.download(0x1016, 1, od_variable(self.od, 0x1016, 1).encode_raw(0))
+            except (SdoAbortedError, SdoCommunicationError, KeyError, can.CanError) as exc:
+                logger.warning("close: heartbeat consumer of node %d not cleared: %s", node.id, exc)
+        if self._heartbeat is not None:
+            self._heartbeat.stop()
+            self._heartbeat = None
+        self.network.disconnect()
+        self.network, self.node = None, None
+
+    def __enter__(self) -> CanopenServo:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- plumbing ---------------------------------------------------------------------------------
+
+    def _tpdo_callback(self, n: int) -> Callable[[int, bytearray, float], None]:
+        layout = self._tpdo[n]
+
+        def on_tpdo(can_id: int, data: bytearray, timestamp: float) -> None:
+            values = layout.decode(data)
+            with self._rx:
+                self._tpdo_values[n] = values
+                self._tpdo_t_s[n] = time.monotonic()
+                self._tpdo_counts[n] += 1
+                self._rx.notify_all()
+
+        return on_tpdo
+
+    def _on_heartbeat(self, state: int) -> None:
+        self._drive_heartbeat_t_s = time.monotonic()
+        self._drive_nmt_state = state
+        if state == 0:
+            self._booted.set()
+
+    def _on_emcy(self, entry: EmcyError) -> None:
+        with self._emcy_lock:
+            if entry.code == 0:
+                self._emcy_active.clear()
+            else:
+                self._emcy_active.append(
+                    f"EMCY 0x{entry.code:04X} ({entry.get_desc()}), error register 0x{entry.register:02X}"
+                )
+
+    def _start_node(self) -> None:
+        _network, node = self._connected()
+        node.nmt.send_command(NMT_START)
+        self._started_t_s = time.monotonic()
+
+    def _operational(self) -> bool:
+        return self._drive_nmt_state == NMT_OPERATIONAL_STATE
+
+    def _read(self, index: int, subindex: int) -> int:
+        _network, node = self._connected()
+        try:
+            data = node.sdo.upload(index, subindex)
+        except (SdoAbortedError, SdoCommunicationError) as exc:
+            raise CanopenServoError(
+                f"node {node.id}: SDO read of 0x{index:04X}:{subindex:02X} failed: {exc}"
+            ) from None
+        return int(od_variable(self.od, index, subindex).decode_raw(data))
+
+    def _write(self, plan: list[SdoWrite]) -> None:
+        _network, node = self._connected()
+        for write in plan:
+            try:
+                node.sdo.download(write.index, write.subindex, write.data(self.od))
+            except (SdoAbortedError, SdoCommunicationError) as exc:
+                raise CanopenServoError(f"node {node.id}: SDO write {write} refused: {exc}") from None
+
+    def _connected(self) -> tuple[RecordedNetwork, canopen.RemoteNode]:
+        if self.network is None or self.node is None:
+            raise CanopenServoError(f"node {self.settings.node_id}: not connected: call connect() first")
+        return self.network, self.node
+
+    def _plan_or_raise(self) -> PdoPlan:
+        if self._plan is None:
+            raise CanopenServoError(f"node {self.settings.node_id}: no mode set: call configure() first")
+        return self._plan
+
+    def _scaling(self) -> Scaling:
+        if self.scaling is None:
+            raise CanopenServoError(f"node {self.settings.node_id}: not booted: call boot() first")
+        return self.scaling
+
+
+def _operation_mode(mode: OperationMode | ControlMode) -> OperationMode:
+    if isinstance(mode, OperationMode):
+        if mode == OperationMode.NO_MODE:
+            raise CanopenServoError("configure: NO_MODE is not a mode to run in")
+        return mode
+    try:
+        return OPERATION_MODE_FOR[mode]
+    except KeyError:
+        raise CanopenServoError(f"configure: a CiA 402 drive has no {mode} mode") from None
+
+
+def _clamp(value: int, bounds: tuple[int, int]) -> int:
+    return min(max(value, bounds[0]), bounds[1])

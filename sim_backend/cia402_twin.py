@@ -1,0 +1,575 @@
+"""A simulated CiA 402 servo drive on a CAN bus: the plant model behind a canopen `LocalNode`.
+
+It wraps `SimulatedDrive` (the plant, the drive's loops, sensors and envelope) and steps it once per
+SYNC, so a master sees a drive: NMT boot-up and heartbeat, SDO access to its object dictionary (its
+own EDS, `configs/eds/hdrig-sim-drive.eds`, or a vendor's), RPDOs applied and TPDOs answered on SYNC,
+the CiA 402 state machine of `drivers.cia402`, EMCY and FAULT on overcurrent, following error and the
+other envelope limits, and on losing the host's heartbeat (0x1016).
+
+What canopen 2.4's `LocalNode` leaves to us is done here: it neither copies RPDO data into its object
+dictionary nor sends TPDOs on SYNC, and it does not watch heartbeats.
+
+Time is virtual: each SYNC advances the plant by the communication cycle period (0x1006; one rig
+period when 0x1006 is 0), so the twin runs as fast as the master sends SYNC. Everything happens on the
+bus's receive thread, except the heartbeat watch (one thread) and the heartbeat producer (python-can's).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Final, cast
+
+import can
+import canopen
+import numpy as np
+from canopen.objectdictionary import ODVariable
+from canopen.sdo import SdoAbortedError
+
+from drivers.can_bus import RecordedNetwork
+from drivers.canopen_config import (
+    EDS_DIR,
+    PDO_INVALID,
+    RPDO_COMM,
+    RPDO_MAP,
+    TPDO_COMM,
+    TPDO_MAP,
+    is_mapping_object,
+)
+from drivers.cia402 import (
+    EMCY_COMMUNICATION,
+    EMCY_FOLLOWING_ERROR,
+    EMCY_HEARTBEAT,
+    EMCY_OVERCURRENT,
+    EMCY_OVERVOLTAGE,
+    EMCY_POSITION_LIMIT,
+    EMCY_SPEED,
+    SUPPORTED_MODE_BIT,
+    SW_MODE_BIT12,
+    SW_MODE_BIT13,
+    SW_TARGET_REACHED,
+    Command,
+    OperationMode,
+    State,
+    decode_controlword,
+    error_register_for,
+    next_state,
+    statusword_for,
+)
+from drivers.pdo_layout import PdoEntry, PdoLayout, od_variable
+from model.params import HarmonicDriveModel
+from model.plant import Plant
+from rig.config import RigConfig
+from rig.interface import SAMPLE_COLUMNS, ControlMode
+from rig.safety import (
+    ABORT_CURRENT,
+    ABORT_FOLLOWING,
+    ABORT_TRAVEL,
+    ABORT_VELOCITY,
+    ABORT_VOLTAGE,
+    NO_ABORT,
+)
+from sim_backend.simulated_drive import SimulatedDrive
+
+logger = logging.getLogger(__name__)
+
+TWIN_EDS: Final = EDS_DIR / "hdrig-sim-drive.eds"
+
+EMCY_FOR_ABORT: Final = {
+    ABORT_CURRENT: EMCY_OVERCURRENT,
+    ABORT_VOLTAGE: EMCY_OVERVOLTAGE,
+    ABORT_VELOCITY: EMCY_SPEED,
+    ABORT_TRAVEL: EMCY_POSITION_LIMIT,
+    ABORT_FOLLOWING: EMCY_FOLLOWING_ERROR,
+}
+"""The emergency code a breach of the drive's envelope sends."""
+
+NMT_OPERATIONAL, NMT_STOPPED = "OPERATIONAL", "STOPPED"
+WATCH_PERIOD_S: Final = 0.005  # heartbeat consumer resolution
+STANDSTILL_RAD_S: Final = 0.5  # a quick stop ends, PV reports zero speed, below this [rad/s]
+PV_REACHED_RAD_S: Final = 2.0  # PV target reached within this [rad/s]
+_INT16, _INT32 = (1 << 15) - 1, (1 << 31) - 1
+
+
+@dataclass
+class _Pdo:
+    cob_id: int
+    transmission: int
+    layout: PdoLayout
+
+
+class _HeartbeatWatch(can.Listener):
+    """The time each node's heartbeat was last heard (fed by the bus's receive thread)."""
+
+    def __init__(self) -> None:
+        self.heard_s: dict[int, float] = {}
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if 0x701 <= msg.arbitration_id <= 0x77F and not msg.is_remote_frame and len(msg.data) == 1:
+            self.heard_s[msg.arbitration_id - 0x700] = time.monotonic()
+
+
+class Cia402Twin:
+    """A CiA 402 drive around the plant, on its own connection to the bus; `close()` ends it all."""
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        node_id: int,
+        model: HarmonicDriveModel,
+        config: RigConfig,
+        eds_path: Path = TWIN_EDS,
+        rated_current_a: float = 5.0,
+    ) -> None:
+        """`bus` becomes the twin's (closed by `close()`). `rated_current_a` is used when the EDS gives
+        no motor rated current (0x6075)."""
+        self.model = model
+        self.config = config
+        self.plant = Plant(model)
+        self.drive = SimulatedDrive(self.plant, config)
+        # Load the compiled loop now, not on the first SYNC: a master would wait for it and time out.
+        SimulatedDrive(Plant(model), config).run(ControlMode.CURRENT, np.zeros(1), np.zeros(1), 0.0)
+        self.period_s = 1.0 / config.sample_rate_hz
+        self.tau_ext_nm = 0.0
+        """Load torque on the output during the next cycles [N·m], as the rig's tau_ext."""
+        self.t_s = 0.0
+        self.last_sample: dict[str, float] = {}
+        self.state = State.NOT_READY_TO_SWITCH_ON
+        self._rated_current_default_a = rated_current_a
+        self._lock = threading.RLock()
+        self._closing = threading.Event()
+        self._vars: dict[tuple[int, int], ODVariable] = {}
+        self._rpdos: dict[int, _Pdo] = {}
+        self._tpdos: list[_Pdo] = []
+        self._pdos_stale = True
+        self._pending: dict[int, bytes] = {}
+        self._tpdo_sent: dict[int, bytes] = {}
+        self._sync_count = 0
+        self._controlword = 0
+        self._position_target_rad: float | None = None
+        self._pv_reference_rad_s = 0.0
+        self._fault_bits = 0
+        self._lost: set[int] = set()
+
+        self.network = RecordedNetwork(bus)  # its periodic heartbeat thread ends when stopped
+        self._watch = _HeartbeatWatch()
+        cast(list[can.Listener], self.network.listeners).append(self._watch)
+        self.node = canopen.LocalNode(node_id, str(eds_path))
+        self.network.add_node(self.node)
+        self.node.add_write_callback(self._on_write)
+        self.network.subscribe(0, self._on_nmt)
+        self._sync_cob_id = self._get(0x1005) & 0x7FF if self._has(0x1005) else 0x080
+        self.network.subscribe(self._sync_cob_id, self._on_sync)
+        self._reset_application()
+        self.network.connect()
+        self._boot()
+        self._watch_thread = threading.Thread(
+            target=self._watch_heartbeats, name=f"twin {node_id} heartbeat watch", daemon=True
+        )
+        self._watch_thread.start()
+
+    # --- object dictionary access -----------------------------------------------------------------
+
+    def _var(self, index: int, subindex: int = 0) -> ODVariable:
+        key = (index, subindex)
+        if key not in self._vars:
+            self._vars[key] = od_variable(self.node.object_dictionary, index, subindex)
+        return self._vars[key]
+
+    def _has(self, index: int, subindex: int = 0) -> bool:
+        try:
+            self._var(index, subindex)
+        except KeyError:
+            return False
+        return True
+
+    def _get(self, index: int, subindex: int = 0) -> int:
+        return int(self._var(index, subindex).decode_raw(self.node.get_data(index, subindex)))
+
+    def _store(self, index: int, subindex: int, value: int) -> None:
+        """Set an object as the drive itself does: no write callbacks, no access check."""
+        if self._has(index, subindex):
+            data = self._var(index, subindex).encode_raw(value)
+            self.node.data_store.setdefault(index, {})[subindex] = data
+
+    def _get_or(self, index: int, default: int, subindex: int = 0) -> int:
+        """The object's value, or `default` when the dictionary lacks it or it holds no value."""
+        try:
+            return self._get(index, subindex)
+        except (KeyError, SdoAbortedError):
+            return default
+
+    # --- boot, NMT, resets ------------------------------------------------------------------------
+
+    def _boot(self) -> None:
+        """Boot-up message, then PRE-OPERATIONAL (which starts the heartbeat of 0x1017)."""
+        self.node.nmt.send_command(0x81)
+        self.node.nmt.send_command(0x80)
+
+    def _reset_application(self) -> None:
+        """Power-on values of the drive's own objects; the 402 state machine to SWITCH ON DISABLED."""
+        self.node.data_store.clear()
+        rated_ma = self._get_or(0x6075, 0)
+        if rated_ma <= 0:
+            rated_ma = round(self._rated_current_default_a * 1000)
+            self._store(0x6075, 0, rated_ma)
+        self.rated_current_a = rated_ma / 1000.0
+        self.rated_torque_nm = self.model.motor.K_m * self.rated_current_a
+        self._store(0x6076, 0, round(self.rated_torque_nm * 1000))
+        for index in (0x6040, 0x603F, 0x1001, 0x6060, 0x6061, 0x6064, 0x606C, 0x6071, 0x6077, 0x6078):
+            self._store(index, 0, 0)
+        self._store(0x607A, 0, 0)
+        self._store(0x60FF, 0, 0)
+        self._controlword = 0
+        self._fault_bits = 0
+        self._pending.clear()
+        self._pdos_stale = True
+        self._enter(State.SWITCH_ON_DISABLED)
+        self._publish()
+
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        command, node_id = data[0], data[1]
+        if node_id not in (0, self.node.id):
+            return
+        with self._lock:
+            if command in (0x81, 0x82):  # reset node / communication: LocalNode only sets the state
+                if command == 0x81:
+                    self._reset_application()
+                else:
+                    for index in [i for i in self.node.data_store if 0x1000 <= i < 0x2000]:
+                        del self.node.data_store[index]
+                    self._pdos_stale = True
+                self._boot()
+                return
+            if self.node.nmt.state == NMT_OPERATIONAL:
+                self._refresh_pdos()
+                return
+            self._pending.clear()
+            if self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE):
+                self._abort_connection()
+
+    def _abort_connection(self) -> None:
+        """The master left OPERATIONAL under a powered drive: 0x6007 says what to do (default 2)."""
+        option = self._get_or(0x6007, 2)
+        if option == 1:
+            self._fault(EMCY_COMMUNICATION)
+        elif option == 3:
+            self._enter(State.QUICK_STOP_ACTIVE)
+        elif option != 0:
+            self._enter(State.SWITCH_ON_DISABLED)
+        self._publish()
+
+    # --- PDOs -------------------------------------------------------------------------------------
+
+    def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
+        # Called before the value is stored: PDO settings are re-read at the next SYNC or NMT start.
+        if RPDO_COMM <= index < 0x1C00:
+            if is_mapping_object(index) and subindex > 0:
+                self._check_mappable(int(od.decode_raw(data)))
+            self._pdos_stale = True
+        elif index == 0x6040:
+            with self._lock:
+                self._apply_controlword(int(od.decode_raw(data)))
+                self._publish()  # the statusword answers at once, for SDO masters too
+
+    def _check_mappable(self, value: int) -> None:
+        """Refuse, as a drive does (SDO abort 0x06040041), to map what is not a mappable object."""
+        entry = PdoEntry.from_mapping_value(value)
+        known = self._has(entry.index, entry.subindex)
+        if value and not (known and self._var(entry.index, entry.subindex).pdo_mappable):
+            raise SdoAbortedError(0x06040041)
+
+    def _refresh_pdos(self) -> None:
+        if not self._pdos_stale:
+            return
+        for cob_id in self._rpdos:
+            self.network.unsubscribe(cob_id, self._on_rpdo)
+        self._rpdos = {p.cob_id: p for p in self._read_pdos(RPDO_COMM, RPDO_MAP)}
+        for cob_id in self._rpdos:
+            self.network.subscribe(cob_id, self._on_rpdo)
+        self._tpdos = self._read_pdos(TPDO_COMM, TPDO_MAP)
+        self._tpdo_sent.clear()
+        self._pdos_stale = False
+
+    def _read_pdos(self, comm: int, mapping: int) -> list[_Pdo]:
+        pdos = []
+        for n in range(512):
+            if not self._has(comm + n, 1):
+                continue
+            cob_id = self._get(comm + n, 1)
+            count = self._get(mapping + n, 0)
+            if cob_id & PDO_INVALID or count == 0:
+                continue
+            entries = [PdoEntry.from_mapping_value(self._get(mapping + n, k)) for k in range(1, count + 1)]
+            transmission = self._get(comm + n, 2) if self._has(comm + n, 2) else 255
+            layout = PdoLayout.of(self.node.object_dictionary, entries)
+            pdos.append(_Pdo(cob_id & 0x7FF, transmission, layout))
+        return pdos
+
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._lock:
+            pdo = self._rpdos.get(can_id)
+            if pdo is None or self.node.nmt.state != NMT_OPERATIONAL:
+                return
+            if pdo.transmission >= 254:
+                self._apply_rpdo(pdo, bytes(data))
+            else:
+                self._pending[can_id] = bytes(data)  # synchronous: takes effect at the next SYNC
+
+    def _apply_rpdo(self, pdo: _Pdo, data: bytes) -> None:
+        try:
+            values = pdo.layout.decode(data)
+        except ValueError:
+            logger.warning("twin %d: RPDO 0x%03X of %d bytes ignored", self.node.id, pdo.cob_id, len(data))
+            return
+        for entry, value in zip(pdo.layout.entries, values, strict=True):
+            var = self._var(entry.index, entry.subindex)
+            self.node.set_data(entry.index, entry.subindex, var.encode_raw(value))
+
+    def _send_tpdos(self) -> None:
+        for pdo in self._tpdos:
+            try:
+                payload = pdo.layout.encode([self._get(e.index, e.subindex) for e in pdo.layout.entries])
+            except SdoAbortedError:  # maps an object that holds no value: a mapping error of the master
+                logger.warning("twin %d: TPDO 0x%03X maps an object with no value", self.node.id, pdo.cob_id)
+                continue
+            if 1 <= pdo.transmission <= 240 and self._sync_count % pdo.transmission != 0:
+                continue
+            if pdo.transmission >= 254 and self._tpdo_sent.get(pdo.cob_id) == payload:
+                continue  # event-driven: sent when it changes (checked at each SYNC)
+            self._tpdo_sent[pdo.cob_id] = payload
+            self.network.send_message(pdo.cob_id, payload)
+
+    # --- the cycle --------------------------------------------------------------------------------
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._lock:
+            operational = self.node.nmt.state == NMT_OPERATIONAL
+            if operational:
+                self._refresh_pdos()
+                pending, self._pending = self._pending, {}
+                for cob_id, payload in pending.items():
+                    self._apply_rpdo(self._rpdos[cob_id], payload)
+            self._sync_count += 1
+            self._step(self._cycles_per_sync())
+            self._publish()
+            if operational:
+                self._send_tpdos()
+
+    def _cycles_per_sync(self) -> int:
+        period_us = self._get_or(0x1006, 0)
+        return max(1, round(period_us * 1e-6 / self.period_s)) if period_us else 1
+
+    def _step(self, n: int) -> None:
+        """Advance the plant n cycles in the current state and mode; a breach while powered faults."""
+        powered = self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+        mode, setpoint = self._command(n) if powered else (ControlMode.CURRENT, np.zeros(n))
+        tau = np.full(n, self.tau_ext_nm)
+        done = 0
+        while done < n:
+            rows, code = self.drive.run(mode, setpoint[done:], tau[done:], self.t_s)
+            done += rows.shape[0]
+            self.t_s += rows.shape[0] * self.period_s
+            self._remember(rows[-1])
+            if code == NO_ABORT:
+                continue
+            if powered:
+                self._fault(EMCY_FOR_ABORT[code])
+                if code == ABORT_FOLLOWING:
+                    self._fault_bits |= SW_MODE_BIT13
+                mode, setpoint = ControlMode.CURRENT, np.zeros(n)
+                powered = False
+        stopped = abs(self.last_sample["omega_m"]) < STANDSTILL_RAD_S
+        if self.state == State.QUICK_STOP_ACTIVE and stopped and not 5 <= self._get_or(0x605A, 2) <= 8:
+            self._enter(State.SWITCH_ON_DISABLED)  # quick stop option codes 1-4: done, power off
+
+    def _command(self, n: int) -> tuple[ControlMode, np.ndarray]:
+        """What the drive's loops are given for the next n cycles, from the targets in its dictionary."""
+        if self.state == State.QUICK_STOP_ACTIVE:
+            return ControlMode.VELOCITY, np.zeros(n)
+        mode = self._active_mode()
+        units = self._position_units_per_rad()
+        if mode == OperationMode.CYCLIC_SYNC_TORQUE:
+            permille = self._get_or(0x6071, 0)
+            limit = self._get_or(0x6072, _INT16)  # max torque, ‰
+            permille = min(max(permille, -limit), limit)
+            current = permille * self.rated_torque_nm / 1000.0 / self.model.motor.K_m
+            limit_a = self._get_or(0x6073, _INT16) * self.rated_current_a / 1000.0  # max current
+            current = min(max(current, -limit_a), limit_a)
+            return ControlMode.CURRENT, np.full(n, current)
+        if mode == OperationMode.CYCLIC_SYNC_POSITION:
+            target = self._get_or(0x607A, 0) / units
+            start = self._position_target_rad if self._position_target_rad is not None else target
+            self._position_target_rad = target
+            return ControlMode.POSITION, np.linspace(start, target, n + 1)[1:]  # interpolated over the SYNC
+        if mode == OperationMode.CYCLIC_SYNC_VELOCITY:
+            return ControlMode.VELOCITY, np.full(n, self._velocity_target_rad_s(units))
+        if mode == OperationMode.PROFILE_VELOCITY:
+            return ControlMode.VELOCITY, self._profile(n, self._velocity_target_rad_s(units), units)
+        return ControlMode.CURRENT, np.zeros(n)  # no mode, or one the drive lacks: no torque
+
+    def _velocity_target_rad_s(self, units: float) -> float:
+        target = self._get_or(0x60FF, 0) / units
+        limit = self._get_or(0x607F, _INT32) / units  # max profile velocity
+        limit = min(limit, self._get_or(0x6080, _INT32) * 2 * math.pi / 60)  # max motor speed, rpm
+        return min(max(target, -limit), limit)
+
+    def _profile(self, n: int, target: float, units: float) -> np.ndarray:
+        """Profile velocity: the reference ramps to the target at 0x6083 (speeding up), 0x6084 (slowing)."""
+        accel = self._get_or(0x6083, 0) / units
+        decel = self._get_or(0x6084, 0) / units
+        out = np.empty(n)
+        reference = self._pv_reference_rad_s
+        for k in range(n):
+            speeding_up = abs(target) > abs(reference) and target * reference >= 0.0
+            step = (accel if speeding_up else decel) * self.period_s
+            step = step if step > 0 else math.inf  # a zero ramp: a step (as the drive's loops allow)
+            reference += min(max(target - reference, -step), step)
+            out[k] = reference
+        self._pv_reference_rad_s = reference
+        return out
+
+    def _remember(self, row: np.ndarray) -> None:
+        self.last_sample = {name: float(row[i]) for i, name in enumerate(SAMPLE_COLUMNS)}
+
+    # --- the state machine ------------------------------------------------------------------------
+
+    def _active_mode(self) -> OperationMode | None:
+        try:
+            mode = OperationMode(self._get_or(0x6060, 0))
+        except ValueError:
+            return None
+        supported = self._get_or(0x6502, 0)
+        return mode if mode in SUPPORTED_MODE_BIT and supported & SUPPORTED_MODE_BIT[mode] else None
+
+    def _apply_controlword(self, controlword: int) -> None:
+        command = decode_controlword(controlword)
+        rising_reset = command == Command.FAULT_RESET and not self._controlword & 0x80
+        self._controlword = controlword
+        if command == Command.FAULT_RESET and not rising_reset:
+            return
+        if command == Command.FAULT_RESET and self.state == State.FAULT:
+            self._clear_fault()
+        self._enter(next_state(self.state, command))
+
+    def _enter(self, state: State) -> None:
+        if state == self.state:
+            return
+        if state == State.OPERATION_ENABLED:
+            self.drive.reset_loops()
+            self._position_target_rad = None
+            self._pv_reference_rad_s = self.last_sample.get("omega_m", 0.0)  # the ramp starts from here
+        self.state = state
+
+    def _fault(self, code: int) -> None:
+        """FAULT at once (the fault reaction is: torque off), the error code and register, one EMCY."""
+        if self.state == State.FAULT:
+            return
+        register = error_register_for(code)
+        self._store(0x603F, 0, code)
+        self._store(0x1001, 0, register)
+        self._enter(State.FAULT)
+        self._publish()
+        if self.node.nmt.state != NMT_STOPPED:
+            self.node.emcy.send(code, register)
+
+    def _clear_fault(self) -> None:
+        self._store(0x603F, 0, 0)
+        self._store(0x1001, 0, 0)
+        self._fault_bits = 0
+        if self.node.nmt.state != NMT_STOPPED:
+            self.node.emcy.reset()
+
+    def _publish(self) -> None:
+        """Statusword, mode display and actual values into the dictionary (what TPDOs and SDO read)."""
+        extra = self._fault_bits
+        mode = self._active_mode()
+        if self.state == State.OPERATION_ENABLED and mode is not None:
+            omega = self.last_sample.get("omega_m", 0.0)
+            if mode == OperationMode.PROFILE_VELOCITY:
+                target = self._velocity_target_rad_s(self._position_units_per_rad())
+                ramped = abs(self._pv_reference_rad_s - target) < 1e-9
+                if ramped and abs(omega - target) < PV_REACHED_RAD_S:
+                    extra |= SW_TARGET_REACHED
+                if abs(omega) < STANDSTILL_RAD_S:
+                    extra |= SW_MODE_BIT12
+            else:
+                extra |= SW_MODE_BIT12  # cyclic modes: the drive follows the command value
+        self._store(0x6041, 0, statusword_for(self.state, extra))
+        self._store(0x6061, 0, int(mode) if mode is not None else 0)
+        if not self.last_sample:
+            return
+        units = self._position_units_per_rad()
+        theta, omega, current = (self.last_sample[c] for c in ("theta_m", "omega_m", "i_a"))
+        self._store(0x6064, 0, _saturate(round(theta * units), _INT32))
+        self._store(0x606C, 0, _saturate(round(omega * units), _INT32))
+        torque = current * self.model.motor.K_m
+        self._store(0x6077, 0, _saturate(round(torque / self.rated_torque_nm * 1000), _INT16))
+        self._store(0x6078, 0, _saturate(round(current / self.rated_current_a * 1000), _INT16))
+
+    def _position_units_per_rad(self) -> float:
+        """Increments per radian: 0x608F where it holds values, else the rig's encoder (17 bit if ideal)."""
+        increments, revs = self._get_or(0x608F, 0, 1), self._get_or(0x608F, 0, 2)
+        if increments > 0 and revs > 0:
+            return increments / revs / (2 * math.pi)
+        counts = self.config.sensors.encoder_counts_per_rev or 1 << 17
+        return counts / (2 * math.pi)
+
+    # --- heartbeat consumer -----------------------------------------------------------------------
+
+    def _watch_heartbeats(self) -> None:
+        while not self._closing.wait(WATCH_PERIOD_S):
+            now = time.monotonic()
+            with self._lock:
+                for node_id, timeout_s in self._consumers():
+                    heard = self._watch.heard_s.get(node_id)
+                    if heard is None:
+                        continue  # monitoring starts with the first heartbeat heard
+                    if now - heard <= timeout_s:
+                        self._lost.discard(node_id)
+                    elif node_id not in self._lost:
+                        self._lost.add(node_id)
+                        logger.warning("twin %d: heartbeat of node %d lost", self.node.id, node_id)
+                        self._fault(EMCY_HEARTBEAT)
+
+    def _consumers(self) -> list[tuple[int, float]]:
+        if not self._has(0x1016, 0):
+            return []
+        consumers = []
+        for sub in range(1, self._get(0x1016, 0) + 1):
+            try:
+                value = self._get(0x1016, sub)
+            except (KeyError, SdoAbortedError):
+                continue
+            node_id, time_ms = value >> 16 & 0x7F, value & 0xFFFF
+            if node_id and time_ms:
+                consumers.append((node_id, time_ms / 1000.0))
+        return consumers
+
+    @property
+    def sync_count(self) -> int:
+        """SYNCs taken so far (each one stepped the plant)."""
+        return self._sync_count
+
+    # --- life cycle -------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Stop the heartbeat watch, the heartbeat producer and the bus; no thread is left behind."""
+        self._closing.set()
+        self._watch_thread.join()
+        self.node.nmt.stop_heartbeat()
+        self.network.disconnect()
+
+    def __enter__(self) -> Cia402Twin:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _saturate(value: int, bound: int) -> int:
+    return min(max(value, -bound - 1), bound)
