@@ -15,6 +15,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
+from pathlib import Path
 
 import numpy as np
 
@@ -187,6 +188,13 @@ class Rig(ABC):
 
     def _faults(self) -> list[str]:
         return []
+
+    def record_raw_to(self, run_dir: Path) -> None:
+        """Where to keep the backend's raw traffic for the run being recorded (hardware: the CAN log).
+
+        The runner calls it before each run with the run's folder; backends without raw traffic ignore it.
+        """
+        return None
 
     def _close(self) -> None:
         return None

@@ -137,6 +137,7 @@ def _play(
         columns=columns,
         meta=meta,
     )
+    rig.record_raw_to(writer.run_dir)
     with writer:
         theta_m0, aborted = _settle(rig, writer.append)
         if aborted is not None:
