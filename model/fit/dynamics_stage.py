@@ -1,0 +1,547 @@
+"""Staged identification, mechanics: motor constants, stiffness and load friction, FRF, kinematic error.
+
+Each stage is a pure function of runs (model.run.Run with their metadata) and the current model, and
+returns `Solved`: values with covariance-based standard errors and notes. Which parameters are then
+believed, and the bookkeeping of the model, is `model.fit.staged`'s business. This module also holds the
+small tools all stages share (least squares with standard errors, a run's context, window averages).
+
+The steady windows of `speed-sweep` and `load-variation` are the experiments' own: every average over
+them is taken by `rig.experiments.speed_sweep.friction_table`, which averages K_m·i_a over each
+constant-speed segment past its settle time; fed a column c/K_m in place of i_a, it averages c over the
+very same rows (`SweepPart.mean`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numba import njit
+from scipy.optimize import least_squares
+
+from model import kernel as k
+from model.fit.parameters import get_values, with_values
+from model.params import HarmonicDriveModel
+from model.plant import kernel_vectors
+from model.run import Run
+from rig.config import RigConfig
+from rig.experiments.base import RigContext, segments_of
+from rig.experiments.chirp import ChirpParams, frf_tables
+from rig.experiments.load_variation import load_prefix
+from rig.experiments.position_friction import steady_samples
+from rig.experiments.pulse import PulseParams
+from rig.experiments.speed_sweep import friction_table
+
+REVERSED_SHARE_MAX = 0.05
+"""A steady window is dropped when the motor or the load runs against the set speed in more samples."""
+COHERENCE_MIN = 0.9
+"""FRF lines used by the dynamics fit: coherence γ² above this."""
+
+
+# --- shared tools -----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Solved:
+    """A stage's answer: values and standard errors by parameter name, and what a person should read."""
+
+    values: dict[str, float] = field(default_factory=dict)
+    std_errors: dict[str, float] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    metrics: dict[str, float] = field(default_factory=dict)  # figures that are not model parameters
+    undetermined: dict[str, str] = field(default_factory=dict)  # parameter: why these data cannot say
+
+    def put(self, name: str, value: float, std_error: float) -> None:
+        self.values[name] = float(value)
+        self.std_errors[name] = float(std_error)
+
+
+BATCHES = 20
+"""Batches of a residual sequence for the batch-means estimate of its correlation."""
+
+
+def serial_inflation(residual: np.ndarray) -> float:
+    """How much correlated samples widen a standard error computed as if they were independent.
+
+    Batch means: with the sequence cut into BATCHES contiguous batches of n samples, the factor is
+    √(n·var(batch means)/var(samples)) (at least 1). Slow residuals (drifts, ripple a fit leaves at
+    low frequency) raise it; fast ripple that a batch averages out does not.
+    """
+    size = residual.size // BATCHES
+    if size < 2 or not np.any(residual):
+        return 1.0
+    means = residual[: size * BATCHES].reshape(BATCHES, size).mean(axis=1)
+    ratio = size * float(np.var(means)) / float(np.var(residual))
+    return math.sqrt(max(ratio, 1.0))
+
+
+def covariance(design: np.ndarray, residual: np.ndarray, serial: bool = False) -> np.ndarray:
+    """s²·(XᵀX)⁻¹ of a least-squares fit with design X and residual, widened for serial correlation."""
+    norms = np.linalg.norm(design, axis=0)
+    norms[norms == 0] = 1.0
+    scaled = design / norms
+    dof = max(len(residual) - design.shape[1], 1)
+    cov = np.linalg.pinv(scaled.T @ scaled) * float(residual @ residual) / dof
+    if serial:
+        cov *= serial_inflation(residual) ** 2
+    return np.asarray(cov / np.outer(norms, norms))
+
+
+def linear_fit(design: np.ndarray, y: np.ndarray, serial: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Least squares y ≈ X·β: β and its covariance."""
+    norms = np.linalg.norm(design, axis=0)
+    norms[norms == 0] = 1.0
+    beta = np.linalg.lstsq(design / norms, y, rcond=None)[0] / norms
+    return beta, covariance(design, y - design @ beta, serial)
+
+
+def nonlinear_fit(
+    residual: Callable[[np.ndarray], np.ndarray],
+    names: Sequence[str],
+    x0: Sequence[float],
+    scale: Sequence[float],
+    lower: Sequence[float] | None = None,
+    loss: str = "linear",
+    f_scale: float = 1.0,
+) -> Solved:
+    """Least squares (scipy) over parameters in units of `scale`; standard errors from s²·(JᵀJ)⁻¹."""
+    scales = np.asarray(scale, dtype=np.float64)
+    low = np.full(len(names), -np.inf) if lower is None else np.asarray(lower) / scales
+    start = np.maximum(np.asarray(x0, dtype=np.float64) / scales, low)
+    result = least_squares(
+        lambda z: residual(z * scales), start, bounds=(low, np.inf), loss=loss, f_scale=f_scale
+    )
+    m, n = result.jac.shape
+    s2 = 2.0 * float(result.cost) / max(m - n, 1)
+    cov = np.linalg.pinv(result.jac.T @ result.jac) * s2
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scales
+    out = Solved()
+    for name, value, err in zip(names, result.x * scales, se, strict=True):
+        out.put(name, value, err)
+    return out
+
+
+def context(run: Run) -> RigContext:
+    """The RigContext an experiment's analysis needs, from a stored run's metadata.
+
+    A stored run knows its rate, gear ratio, torque constant and start; the analyses read nothing else of
+    the rig (limits and loop gains only shape programs), so the config carries the rate alone.
+    """
+    fields: dict[str, Any] = {"sample_rate_hz": float(run.meta["sample_rate_hz"])}
+    config = RigConfig.model_construct(**fields)
+    return RigContext(
+        config,
+        float(run.meta["gear_ratio"]),
+        float(run.meta["torque_constant_nm_per_a"]),
+        float(run.meta.get("theta_m0", 0.0)),
+    )
+
+
+def as_torque(run: Run, ctx: RigContext, column: np.ndarray) -> Run:
+    """The run with `column`/K_m as its current: an analysis that averages K_m·i_a then averages `column`."""
+    return Run({**run.columns, "i_a": np.asarray(column) / ctx.torque_constant_nm_per_a}, run.meta)
+
+
+def derivative(run: Run, column: str) -> np.ndarray:
+    return np.asarray(np.gradient(run[column], run.t))
+
+
+def deflection(run: Run, model: HarmonicDriveModel, offset_rad: float = 0.0) -> np.ndarray:
+    """r·θ_m + A·sin(k·θ_m + φ) − θ_l − offset: the spring's deflection at the output [rad]."""
+    theta_m = run["theta_m"]
+    out = model.mechanics.r * theta_m - run["theta_l"] - offset_rad
+    if (ke := model.kinematic_error) is not None:
+        out = out + ke.A * np.sin(ke.k * theta_m + ke.phi)
+    return np.asarray(out)
+
+
+@njit(cache=True)
+def _spring_torques(p: np.ndarray, nonlinear: int, deflections: np.ndarray) -> np.ndarray:
+    out = np.empty_like(deflections)
+    for i in range(deflections.shape[0]):
+        out[i] = k._spring(p, nonlinear, deflections[i])
+    return out
+
+
+def spring_torque(model: HarmonicDriveModel, deflections: np.ndarray) -> np.ndarray:
+    """The transmission's spring torque K_s·δ, or the catalog's piecewise law (the kernel's own) [N·m]."""
+    p, flags = kernel_vectors(model)
+    return np.asarray(_spring_torques(p, int(flags[k.FL_NONLINEAR]), np.ascontiguousarray(deflections)))
+
+
+def load_friction_steady(model: HarmonicDriveModel, omega_l: np.ndarray) -> np.ndarray:
+    """F_l of a load moving steadily at ω_l ≠ 0: sgn(ω_l)·level(|ω_l|) + b_l·ω_l (kernel levels) [N·m]."""
+    if model.load_friction is None:
+        return np.zeros_like(omega_l)
+    p, flags = kernel_vectors(model)
+    law = int(flags[k.FL_LOAD_LAW])
+    levels = np.array([k.load_levels(p, law, abs(w))[0] for w in np.atleast_1d(omega_l)])
+    return np.sign(omega_l) * levels + model.load_friction.b_l * omega_l
+
+
+@dataclass
+class SweepPart:
+    """The steady windows of one speed sweep in a run: `speed-sweep`'s, or one load's of `load-variation`."""
+
+    run: Run
+    ctx: RigContext
+    settle_s: float
+    prefix: str
+    omega_set: np.ndarray  # per window [rad/s]
+    steady: np.ndarray  # per window: neither motor nor load ran against the set speed
+
+    def mean(self, column: np.ndarray) -> np.ndarray:
+        """`column` averaged over each window (friction_table's rows)."""
+        table = friction_table(as_torque(self.run, self.ctx, column), self.ctx, self.settle_s, self.prefix)
+        return np.asarray(table["torque_nm"])
+
+    @property
+    def torque(self) -> np.ndarray:
+        """Mean motor torque K_m·i_a per window [N·m]."""
+        return self.mean(self.ctx.torque_constant_nm_per_a * self.run["i_a"])
+
+
+def sweep_parts(runs: Sequence[Run], model: HarmonicDriveModel) -> list[SweepPart]:
+    """Every steady-speed sweep in the runs, windows marked steady where the formula F_m + r·F_l holds.
+
+    At low speed a kinematic error larger than r makes a compliant output run backwards part of each
+    error cycle (the load's friction then averages to anything); a window is steady when the motor and,
+    on a compliant model, the load run with the set speed in all but REVERSED_SHARE_MAX of its samples.
+    """
+    parts = []
+    for run in runs:
+        experiment = run.meta.get("experiment")
+        if experiment == "speed-sweep":
+            prefixes = [""]
+        elif experiment == "load-variation":
+            prefixes = [load_prefix(float(tau)) for tau in run.meta["params"]["loads_nm"]]
+        else:
+            continue
+        ctx = context(run)
+        settle_s = float(run.meta["params"]["settle_s"])
+        direction = np.sign(run["setpoint"])
+        against = (direction * run["omega_m"] < 0).astype(np.float64)
+        if "omega_l" in run and not model.rigid:
+            against = np.maximum(against, (direction * run["omega_l"] < 0).astype(np.float64))
+        for prefix in prefixes:
+            table = friction_table(as_torque(run, ctx, against), ctx, settle_s, prefix)
+            steady = np.asarray(table["torque_nm"]) <= REVERSED_SHARE_MAX
+            parts.append(SweepPart(run, ctx, settle_s, prefix, np.asarray(table["omega_set"]), steady))
+    return parts
+
+
+def runs_of(runs: Sequence[Run], experiment: str) -> list[Run]:
+    return [run for run in runs if run.meta.get("experiment") == experiment]
+
+
+# --- stage: motor constants -------------------------------------------------------------------------------
+
+
+def motor_constants(pulses: Sequence[Run]) -> Solved:
+    """R, K_b from voltage-mode pulses: u = R·i_a + K_b·ω_m at every sample where the motor is driven or
+    moves.
+
+    ω_m is the central difference of θ_m (the recorded speed is filtered and lags). K_m is the rig's.
+    """
+    rows_u, rows_i, rows_w = [], [], []
+    for run in pulses:
+        if run.input_column != "u":
+            continue
+        program = slice(int(segments_of(run)[0]["start"]), len(run))
+        omega = derivative(run, "theta_m")[program]
+        u, current = run["u"][program], run["i_a"][program]
+        pick = (u != 0) | (np.abs(omega) > PulseParams.model_validate(run.meta["params"]).rest_speed_rad_s)
+        rows_u.append(u[pick])
+        rows_i.append(current[pick])
+        rows_w.append(omega[pick])
+    out = Solved()
+    if not rows_u:
+        out.notes.append("skipped: no voltage-mode pulse run")
+        return out
+    beta, cov = linear_fit(
+        np.column_stack([np.concatenate(rows_i), np.concatenate(rows_w)]), np.concatenate(rows_u), serial=True
+    )
+    out.put("R", beta[0], math.sqrt(cov[0, 0]))
+    out.put("K_b", beta[1], math.sqrt(cov[1, 1]))
+    samples = sum(map(len, rows_u))
+    out.notes.append(f"u = R·i_a + K_b·ω_m over {samples} samples of {len(rows_u)} pulse run(s)")
+    return out
+
+
+# --- stage: static stiffness and load friction --------------------------------------------------------------
+
+
+def stiffness_names(model: HarmonicDriveModel) -> list[str]:
+    return ["K1", "K2", "K3"] if model.nonlinear_stiffness is not None else ["K_s"]
+
+
+def load_friction_names(model: HarmonicDriveModel) -> list[str]:
+    lf = model.load_friction
+    return ["f_cl", "b_l"] if lf is not None and lf.load_law == "coulomb_viscous" else []
+
+
+def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDriveModel) -> Solved:
+    """K_s (or K1..K3 at fixed T1, T2), f_cl, b_l and the load sensor's zero from steady windows.
+
+    The load at steady speed: mean T_s = τ_ext + F_l(r·ω) + J_l·mean(dω_l/dt), with
+    T_s = spring(r·θ_m + A·sin(k·θ_m + φ) − θ_l − offset) averaged over the window's samples. Windows at
+    several loads separate the stiffness, both directions f_cl, several speeds b_l.
+    """
+    out = Solved()
+    used = [(part, part.steady) for part in parts if "theta_l" in part.run and np.any(part.steady)]
+    if model.rigid or not used:
+        out.notes.append("skipped: no steady sweep with a load angle on a compliant model")
+        return out
+    loads = {round(float(np.mean(part.mean(part.run["tau_ext"]))), 6) for part, _ in used}
+    if len(loads) < 2:
+        # One load: the deflection is F_l/K_s, and only the windows' momentum (through the held J_l)
+        # would part K_s from the friction; that is no measurement of either.
+        out.notes.append("skipped: steady windows under one load only (no load-variation run)")
+        return out
+    if model.hysteresis is not None:
+        out.notes.append("skipped: the spring torque carries the hysteresis element's ±T_h (not modelled)")
+        return out
+    names = stiffness_names(model) + load_friction_names(model)
+    if (ns := model.nonlinear_stiffness) is not None:
+        # A segment's stiffness is seen only if some load passes into it (by 10 % of its breakpoint).
+        reach = max(abs(tau) for tau in loads)
+        for name, breakpoint in (("K2", ns.T1), ("K3", ns.T2)):
+            if reach < 1.1 * breakpoint:
+                names.remove(name)
+                out.undetermined[name] = (
+                    f"loads up to {reach:g} N·m do not pass its breakpoint {breakpoint:g} N·m"
+                )
+    r, J_l = model.mechanics.r, model.mechanics.J_l
+    pieces = []
+    for part, steady in used:
+        target = part.mean(part.run["tau_ext"]) + J_l * part.mean(derivative(part.run, "omega_l"))
+        pieces.append((part, steady, target, deflection(part.run, model)))
+    scale_nm = 1e-3  # residuals in mN·m: the unit of the fit's conditioning, not of its result
+
+    f_sl = model.load_friction.f_sl if model.load_friction is not None else None
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        values = dict(zip(names, x[:-1], strict=True))
+        if "f_cl" in values and f_sl is not None:
+            values["f_sl"] = max(f_sl, values["f_cl"])  # the schema keeps static ≥ Coulomb
+        trial = with_values(model, values)
+        parts_out = []
+        for part, steady, target, bent in pieces:
+            torque = part.mean(spring_torque(trial, bent - x[-1]))
+            load = load_friction_steady(trial, r * part.omega_set)
+            parts_out.append(((torque - target - load) / scale_nm)[steady])
+        return np.concatenate(parts_out)
+
+    start = list(get_values(model, names).values())
+    solved = nonlinear_fit(
+        residual,
+        [*names, "theta_l_offset"],
+        [*start, 0.0],
+        [*(abs(v) or 1.0 for v in start), 1e-5],
+        lower=[1e-9 if name.startswith("K") else 0.0 for name in names] + [-np.inf],
+    )
+    windows = sum(int(np.count_nonzero(s)) for _, s in used)
+    solved.metrics["theta_l_offset"] = solved.values.pop("theta_l_offset")
+    solved.std_errors.pop("theta_l_offset")
+    solved.notes.append(
+        f"mean spring torque = τ_ext + F_l + J_l·dω_l/dt over {windows} steady windows"
+        f" (J_l = {J_l:.4g} kg·m²); load sensor zero {solved.metrics['theta_l_offset']:.3g} rad"
+    )
+    return solved
+
+
+# --- stage: frequency response ------------------------------------------------------------------------------
+
+
+def speed_filter(run: Run) -> float | None:
+    """α of the drive's speed estimate ω[k] = ω[k−1] + α·((θ[k] − θ[k−1])/T − ω[k−1]), from the run's own
+    θ_m and ω_m columns by least squares; None when the columns do not follow that law."""
+    period = 1.0 / run.sample_rate_hz
+    raw = np.diff(run["theta_m"]) / period
+    omega = run["omega_m"]
+    x, y = raw - omega[:-1], np.diff(omega)
+    if not np.any(x):
+        return None
+    alpha = float(x @ y / (x @ x))
+    misfit = float(np.sqrt(np.mean((y - alpha * x) ** 2) / max(np.mean(y**2), 1e-300)))
+    return alpha if misfit < 1e-3 and 0.0 < alpha <= 1.0 else None
+
+
+def two_inertia_frf(
+    model: HarmonicDriveModel, freq_hz: np.ndarray, c_m: float, period_s: float, alpha: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """i_cmd → measured ω_m and i_cmd → θ_l of the linear two-inertia model, through the rig's sampling.
+
+    (J_m s² + c_m s + r²Z)·θ_m − r·Z·θ_l = K_m·i,  −r·Z·θ_m + (J_l s² + b_l s + Z)·θ_l = 0,  Z = K_s + D_s·s;
+    the command is held one cycle (e^(−sT/2)), the speed is the encoder difference (1 − z⁻¹)/T through
+    the drive's first-order filter α/(1 − (1 − α)·z⁻¹) (ideal derivative s when α is unknown).
+    """
+    mech, trans = model.mechanics, model.transmission
+    s = 2j * np.pi * freq_hz
+    b_l = model.load_friction.b_l if model.load_friction is not None else 0.0
+    hold = np.exp(-s * period_s / 2)
+    if trans.K_s is None:
+        theta_m = model.motor.K_m / (s * s * (mech.J_m + mech.r**2 * mech.J_l) + s * (c_m + mech.r**2 * b_l))
+        theta_l = mech.r * theta_m
+    else:
+        z = trans.K_s + trans.D_s * s
+        motor = mech.J_m * s * s + c_m * s + mech.r**2 * z
+        load = mech.J_l * s * s + b_l * s + z
+        det = motor * load - (mech.r * z) ** 2
+        theta_m = model.motor.K_m * load / det
+        theta_l = model.motor.K_m * mech.r * z / det
+    chain: np.ndarray = s
+    if alpha is not None:
+        delay = np.exp(-s * period_s)
+        chain = (1 - delay) / period_s * alpha / (1 - (1 - alpha) * delay)
+    return theta_m * hold * chain, theta_l * hold
+
+
+def frequency_response(chirp: Run, model: HarmonicDriveModel, fit_stiffness: bool, c_m: float) -> Solved:
+    """J_m, J_l, D_s (and K_s if no static value) from the chirp's FRFs, i_cmd → ω_m and i_cmd → θ_l.
+
+    Complex least squares of log(H_model/H_measured) over the lines with coherence > COHERENCE_MIN, with a
+    soft-L1 loss: the friction harmonics and the slow friction trend leak into a few lines of a short
+    periodic record, and those should not steer the fit. c_m (the motor friction's slope) is held.
+    """
+    ctx = context(chirp)
+    params = ChirpParams.model_validate(chirp.meta["params"])
+    tables = frf_tables(chirp, params, ctx)
+    alpha = speed_filter(chirp)
+    out = Solved()
+    used = ["frf_speed"] if model.rigid or "theta_l" not in chirp else ["frf_speed", "frf_load"]
+    measured = {}
+    for name in used:
+        table = tables[name]
+        keep = table["coherence"] > COHERENCE_MIN
+        h = 10 ** (table["magnitude_db"][keep] / 20) * np.exp(1j * np.radians(table["phase_deg"][keep]))
+        measured[name] = (table["freq_hz"][keep], h)
+    lines = sum(len(f) for f, _ in measured.values())
+    if lines < 6:
+        out.notes.append(f"skipped: only {lines} coherent FRF lines in the chirp")
+        return out
+    stiffness = stiffness_names(model)[:1]  # K_s, or K1 (= K_s) of a piecewise spring
+    names = ["J_m"] if model.rigid else ["J_m", "J_l", "D_s"] + (stiffness if fit_stiffness else [])
+    period_s = 1.0 / ctx.rate_hz
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        trial = with_values(model, dict(zip(names, x, strict=True)))  # rigid: J_l held, J_m the rest
+        pieces = []
+        for name, (freq, h) in measured.items():
+            speed, load = two_inertia_frf(trial, freq, c_m, period_s, alpha)
+            error = np.log((speed if name == "frf_speed" else load) / h)
+            pieces += [error.real, error.imag]
+        return np.concatenate(pieces)
+
+    start = list(get_values(model, names).values())
+    scale = [abs(v) if v else 1.0 for v in start]
+    lower = [1e-12] * len(names)
+    out = nonlinear_fit(residual, names, start, scale, lower=lower, loss="soft_l1", f_scale=0.1)
+    out.notes.append(
+        f"two-inertia model fitted to {lines} coherent lines of {', '.join(used)}"
+        f" (speed filter α = {alpha:.4g})"
+        if alpha is not None
+        else f"two-inertia model fitted to {lines} coherent lines; speed column not a first-order filter"
+        " of encoder differences, taken as the true speed"
+    )
+    if not model.rigid:
+        line_hz = 1.0 / params.period_s
+        fitted = with_values(model, {n: out.values[n] for n in names})
+        mech, trans = fitted.mechanics, fitted.transmission
+        assert trans.K_s is not None
+        reduced = 1.0 / (1.0 / mech.J_l + mech.r**2 / mech.J_m)
+        zeta = trans.D_s / (2.0 * math.sqrt(trans.K_s * reduced))
+        f_r = math.sqrt(trans.K_s / reduced) / (2 * math.pi)
+        f_a = math.sqrt(trans.K_s / mech.J_l) / (2 * math.pi)
+        band_hz = max(float(freq.max()) for freq, _ in measured.values())
+        out.metrics.update(zeta=zeta, f_r_hz=f_r, f_a_hz=f_a, line_hz=line_hz)
+        if f_a > band_hz:
+            # No antiresonance in the band: the FRF sees the rigid body J_m + r²·J_l alone.
+            held = model.mechanics.J_l
+            out.values["J_m"] += mech.r**2 * (mech.J_l - held)
+            why = f"the antiresonance ({f_a:.3g} Hz) lies above the coherent band (≤ {band_hz:.3g} Hz)"
+            out.undetermined["J_l"] = why + ": only J_m + r²·J_l is seen, J_m carries it"
+            out.undetermined["D_s"] = why
+            for name in stiffness if fit_stiffness else []:
+                out.undetermined[name] = why
+        elif 2 * zeta * f_r < 2 * line_hz or f_r > band_hz:
+            out.undetermined["D_s"] = (
+                f"fitted {trans.D_s:.3g} N·m·s/rad gives the resonance ({f_r:.3g} Hz) a half-power width"
+                f" of {2 * zeta * f_r:.2g} Hz: not resolved by FRF lines {line_hz:g} Hz apart"
+                f" up to {band_hz:.3g} Hz"
+            )
+    return out
+
+
+# --- stage: kinematic error --------------------------------------------------------------------------------
+
+
+def load_response(model: HarmonicDriveModel, omega_rad_s: np.ndarray) -> np.ndarray:
+    """G(jΩ) = (K_s + jΩ·D_s)/(K_s + jΩ·(D_s + b_l) − J_l·Ω²): how the load follows a motion imposed at
+    the spring's motor end at Ω [rad/s]; 1 for a rigid transmission."""
+    trans, J_l = model.transmission, model.mechanics.J_l
+    if trans.K_s is None:
+        return np.ones_like(omega_rad_s, dtype=np.complex128)
+    b_l = model.load_friction.b_l if model.load_friction is not None else 0.0
+    jw = 1j * omega_rad_s
+    spring = trans.K_s + jw * trans.D_s
+    return np.asarray(spring / (spring + jw * b_l - J_l * omega_rad_s**2))
+
+
+def kinematic_error(passes: Sequence[Run], model: HarmonicDriveModel) -> Solved:
+    """A, φ from θ_l − r·θ_m over constant-speed passes: the kinematic error seen through the load.
+
+    At motor speed ω the spring's motor end moves by r·θ_m + A·sin(k·θ_m + φ), rippling at Ω = k·ω (the
+    error, and the motor's own ripple r·θ̃_m that the error's torque causes); the load follows that by
+    G(jΩ), so θ_l − r·θ_m = c + Im(A·e^(jφ)·G·e^(jk·θ_m)) + Im((G − 1)·r·m·e^(jk·θ_m)), m the motor's
+    measured ripple at Ω. Linear in A·e^(jφ): least squares, an offset per pass direction, with K_s, J_l,
+    D_s, b_l from the earlier stages.
+    """
+    out = Solved()
+    ke = model.kinematic_error
+    if ke is None:
+        out.notes.append("skipped: no kinematic_error in the model")
+        return out
+    r = model.mechanics.r
+    columns, targets = [], []
+    for run in passes:
+        if "theta_l" not in run:
+            continue
+        ctx = context(run)
+        settle_s = float(run.meta["params"]["settle_s"])
+        speed = float(run.meta["params"]["speed_rad_s"])
+        theta, direction, _ = steady_samples(run, ctx, settle_s)
+        _, _, theta_l = steady_samples(as_torque(run, ctx, run["theta_l"]), ctx, settle_s)
+        _, _, t_s = steady_samples(as_torque(run, ctx, run.t), ctx, settle_s)
+        wave = np.exp(1j * ke.k * theta)
+        response = load_response(model, ke.k * speed * direction)
+        for sign in (1.0, -1.0):  # Frisch–Waugh: an offset per direction, taken out by centring
+            pick = direction == sign
+            if not np.any(pick):
+                continue
+            ripple = theta[pick] - np.polyval(np.polyfit(t_s[pick], theta[pick], 1), t_s[pick])
+            at_k = np.column_stack([wave[pick].imag, wave[pick].real])
+            beta, _ = linear_fit(at_k - at_k.mean(axis=0), ripple - ripple.mean())
+            motor = np.imag((response[pick] - 1) * r * complex(beta[0], beta[1]) * wave[pick])
+            basis = response[pick] * wave[pick]
+            design = np.column_stack([basis.imag, basis.real])
+            y = theta_l[pick] - r * theta[pick] - motor
+            columns.append(design - design.mean(axis=0))
+            targets.append(y - y.mean())
+    if not columns:
+        out.notes.append("skipped: no position-friction run with a load angle")
+        return out
+    beta, cov = linear_fit(np.concatenate(columns), np.concatenate(targets), serial=True)
+    amplitude = float(np.hypot(*beta))
+    radial = beta / amplitude
+    tangential = np.array([-radial[1], radial[0]])
+    out.put("A", amplitude, math.sqrt(float(radial @ cov @ radial)))
+    out.put("phi", math.atan2(beta[1], beta[0]), math.sqrt(float(tangential @ cov @ tangential)) / amplitude)
+    out.notes.append(
+        f"θ_l − r·θ_m at k = {ke.k:g} per motor turn over {sum(map(len, targets))} samples,"
+        " through the load's response G(jkω)"
+    )
+    return out

@@ -1,0 +1,329 @@
+"""Staged identification: the campaign's runs, stage by stage, to the starting point of the joint fit.
+
+`staged_estimates(runs, start)` takes runs (selected by `run.meta["experiment"]`) and a starting model and
+returns the updated model with one `StageEstimate` per parameter it touched or judged. Each stage solves
+one equation of MODEL.md by least squares, with standard errors from the covariance:
+
+1. motor constants (`pulse`, voltage mode): u = R·i_a + K_b·ω_m → R, K_b; K_m is the rig's, given.
+2. mechanics, twice round, each using the others' latest values:
+   - stiffness and load friction (`speed-sweep`, `load-variation` steady windows): mean spring torque
+     = τ_ext + F_l(r·ω) + J_l·dω_l/dt → K_s (or K1..K3), f_cl, b_l;
+   - frequency response (`chirp`): the linear two-inertia FRFs i_cmd → ω_m, θ_l → J_m, J_l, D_s;
+   - kinematic error (`position-friction`): θ_l − r·θ_m at k per motor turn through the load's
+     response → A, φ.
+3. motor friction, twice round: against position (`position-friction`: s1, s2, a1..a10, b1..b10),
+   against velocity (sweep windows: s3, k_v, or the baseline law's levels).
+4. breakaway (every run's sticks): static_factor.
+
+What the data cannot determine is said, and held at its starting value: v_c (C·(1 + k_v(|ω| − v_c)) =
+C·(1 − k_v·v_c) + C·k_v·|ω|: s3 and k_v absorb it), a0 (a constant like s3: fixed at 0), b_m (∝ ω like
+C·k_v), K_m and r (given), f_sl, and whatever a stage had no run for. Everything else whose standard
+error exceeds a quarter of its size (or, for coefficients that may be zero, of a natural scale) is
+flagged the same way. A standard error is that of its stage's own least squares, the other stages'
+values held: it does not carry their errors (A carries J_l's, for one).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from model.errors import UserInputError
+from model.fit.dynamics_stage import (
+    Solved,
+    frequency_response,
+    kinematic_error,
+    load_friction_names,
+    motor_constants,
+    runs_of,
+    stiffness_and_load_friction,
+    stiffness_names,
+    sweep_parts,
+)
+from model.fit.friction_stage import (
+    FOURIER_NAMES,
+    breakaway,
+    position_friction,
+    velocity_friction,
+    velocity_names,
+)
+from model.fit.parameters import get_values, with_values
+from model.params import HarmonicDriveModel
+from model.plant import Plant
+from model.run import Run
+
+ROUNDS = 2
+"""Passes over the coupled stages (mechanics; position ↔ velocity friction): the second settles them."""
+DETERMINED = 0.25
+"""A value counts as determined by the data when its standard error is under this share of its size
+(it stands four standard errors from zero), or of a natural scale for coefficients that may be zero."""
+PAIRS = (("f_st", "omega_st"), ("f_sm", "omega_sm"), ("A", "phi"))
+"""Parameters of one curve (a bump's height and width, an error's amplitude and phase): both or neither."""
+RELATIVE_SCALE = 0.01
+"""The natural scale of coefficients that may be zero (a_n, b_n, s1, s2, f_dir): this share of the
+Coulomb level s3 (over the stroke, for s1 and s2)."""
+
+
+@dataclass(frozen=True)
+class StageEstimate:
+    """One parameter as the staged identification left it: value, standard error, and whether the data
+    determine it (if not, `value` is the starting value and `note` says why)."""
+
+    name: str
+    value: float
+    std_error: float | None
+    stage: str
+    identifiable: bool
+    note: str = ""
+
+
+@dataclass
+class StagedResult:
+    model: HarmonicDriveModel
+    estimates: list[StageEstimate]
+    notes: list[str] = field(default_factory=list)
+
+    def estimate(self, name: str) -> StageEstimate:
+        for each in self.estimates:
+            if each.name == name:
+                return each
+        raise KeyError(f"no estimate of {name!r}")
+
+
+class _Book:
+    """The model as the stages update it, and what was said of each parameter and stage."""
+
+    def __init__(self, model: HarmonicDriveModel) -> None:
+        self.model = model
+        self.estimates: dict[str, StageEstimate] = {}
+        self.notes: dict[str, list[str]] = {}
+
+    def value(self, name: str) -> float:
+        return get_values(self.model, [name])[name]
+
+    def say(self, stage: str, notes: list[str]) -> None:
+        self.notes[stage] = [f"{stage}: {note}" for note in notes]
+
+    def flag(self, name: str, stage: str, note: str) -> None:
+        self.estimates[name] = StageEstimate(name, self.value(name), None, stage, False, note)
+
+    def accept(
+        self, stage: str, solved: Solved, names: list[str], scales: dict[str, float] | None = None
+    ) -> None:
+        """Believe each value whose standard error is finite and under DETERMINED·max(|value|, scale)
+        (and, for the parameters of one curve in PAIRS, whose partner is believed too)."""
+        self.say(stage, solved.notes)
+        believed, doubted = {}, {}
+        for name in names:
+            if name in solved.undetermined:
+                doubted[name] = solved.undetermined[name]
+            elif name in solved.values:
+                value, se = solved.values[name], solved.std_errors[name]
+                if math.isfinite(se) and se <= DETERMINED * max(abs(value), (scales or {}).get(name, 0.0)):
+                    believed[name] = value
+                else:
+                    doubted[name] = f"estimate {value:.4g} ± {se:.3g}: not determined by these data"
+        for pair in PAIRS:
+            for name, partner in (pair, pair[::-1]):
+                if name in believed and partner in doubted:
+                    believed.pop(name)
+                    doubted[name] = f"its partner {partner} is not determined, so neither is it"
+        for name, why in doubted.items():
+            self.flag(name, stage, f"{why}: held")
+        for name, value in believed.items():
+            self.estimates[name] = StageEstimate(name, value, solved.std_errors[name], stage, True)
+        self.update(believed)
+
+    def update(self, values: dict[str, float]) -> None:
+        if not values:
+            return
+        data = dict(values)
+        lf = self.model.load_friction
+        if "f_cl" in data and lf is not None and lf.f_sl is not None and lf.f_sl < data["f_cl"]:
+            data["f_sl"] = data["f_cl"]  # the schema's rule: static at least the Coulomb level
+        try:
+            self.model = with_values(self.model, data, "staged")
+        except UserInputError as exc:
+            for name in values:
+                self.flag(name, self.estimates[name].stage, f"estimate breaks the model's rules: {exc}")
+
+
+REQUIRED_META = (
+    "experiment",
+    "sample_rate_hz",
+    "gear_ratio",
+    "torque_constant_nm_per_a",
+    "segments",
+    "params",
+)
+
+
+def _rig_constants(runs: list[Run], book: _Book) -> None:
+    """K_m and r are the rig's (run metadata): the model takes them as given."""
+    for run in runs:
+        missing = [key for key in REQUIRED_META if key not in run.meta]
+        if missing:
+            name = run.meta.get("run_id", run.meta.get("experiment", "a run"))
+            raise UserInputError(f"staged identification: {name} lacks metadata {', '.join(missing)}")
+    for name, key in (("K_m", "torque_constant_nm_per_a"), ("r", "gear_ratio")):
+        given = sorted({float(run.meta[key]) for run in runs})
+        if len(given) > 1:
+            raise UserInputError(f"staged identification: the runs disagree on {key}: {given}")
+        book.update({name: given[0]})
+        book.flag(name, "motor", f"the rig's {key} (run metadata): given, not fitted")
+
+
+def _friction_slope(chirp: Run, model: HarmonicDriveModel) -> float:
+    """c_m: slope dF_m/dω of the model's moving friction at the chirp's mean speed, over its positions."""
+    speed = float(chirp.meta["params"]["mean_speed_motor_rad_s"])
+    theta = chirp["theta_m"]
+    plant = Plant(model)
+    up = plant.steady_friction(theta, np.full(theta.shape, speed + 0.5))
+    down = plant.steady_friction(theta, np.full(theta.shape, speed - 0.5))
+    return float(np.mean(up - down))
+
+
+def _mechanics(runs: list[Run], book: _Book) -> float:
+    """Stiffness and load friction, FRF, kinematic error; returns the load sensor's zero [rad]."""
+    parts = sweep_parts(runs, book.model)
+    stiff = stiffness_and_load_friction(parts, book.model)
+    offset = stiff.metrics.get("theta_l_offset", 0.0)
+    stiffness = stiffness_names(book.model)
+    book.accept("stiffness", stiff, stiffness + load_friction_names(book.model))
+    chirps = runs_of(runs, "chirp")
+    if chirps:
+        static_known = bool(stiff.values)
+        slope = _friction_slope(chirps[0], book.model)
+        frf = frequency_response(chirps[0], book.model, not static_known, slope)
+        names = ["J_m"] if book.model.rigid else ["J_m"] + ([] if static_known else stiffness[:1])
+        if book.model.rigid:
+            frf.undetermined["J_l"] = "a rigid axis shows J_m + r²·J_l only: J_m carries the sum"
+        book.accept("frf", frf, [*names, "J_l", "D_s"])
+    else:
+        book.say("frf", ["skipped: no chirp run"])
+    passes = runs_of(runs, "position-friction")
+    book.accept("kinematic-error", kinematic_error(passes, book.model), ["A", "phi"], {"phi": math.pi})
+    return offset
+
+
+def _friction(runs: list[Run], book: _Book) -> None:
+    passes = runs_of(runs, "position-friction")
+    position = position_friction(passes, book.model)
+    scales = {}
+    if position.values:
+        s3 = abs(book.value("s3"))
+        span = position.metrics["span_rad"]
+        scales = {"s1": RELATIVE_SCALE * s3 / span**2, "s2": RELATIVE_SCALE * s3 / span}
+        scales.update({name: RELATIVE_SCALE * s3 for name in FOURIER_NAMES})
+        position.notes.append(
+            f"s3 from these passes: {position.values['s3']:.5g} N·m (a check of the velocity stage's)"
+        )
+    book.accept("friction-position", position, ["s1", "s2", *FOURIER_NAMES], scales)
+    velocity = velocity_friction(sweep_parts(runs, book.model), book.model)
+    scales = {"f_dir": RELATIVE_SCALE * abs(book.value("s3"))} if book.model.direction_asymmetry else {}
+    book.accept("friction-velocity", velocity, velocity_names(book.model), scales)
+    if "asymmetry_nm" in velocity.metrics and book.model.direction_asymmetry is None:
+        book.notes["friction-velocity"].append(
+            f"friction-velocity: direction asymmetry (forward − backward)/2 = "
+            f"{velocity.metrics['asymmetry_nm']:.3g} N·m (a metric; not in the model)"
+        )
+
+
+def _expected(model: HarmonicDriveModel) -> dict[str, list[str]]:
+    """What each stage estimates for this model."""
+    article = model.motor_friction.motor_law == "article"
+    stages = {
+        "motor": ["R", "K_b"],
+        "stiffness": [] if model.rigid else stiffness_names(model),
+        "frf": ["J_m", "J_l"] + ([] if model.rigid else ["D_s"]),
+        "kinematic-error": ["A", "phi"] if model.kinematic_error is not None else [],
+        "friction-position": ["s1", "s2", *FOURIER_NAMES] if article else [],
+        "friction-velocity": velocity_names(model),
+        "breakaway": ["static_factor"] if article else [],
+    }
+    if model.motor_friction.motor_law in ("coulomb_viscous", "stribeck"):
+        stages["breakaway"] = ["f_sm"]
+    return stages
+
+
+def _structural(runs: list[Run], book: _Book) -> None:
+    """The parameters these experiments cannot determine, each with the reason."""
+    model = book.model
+    for stage, names in _expected(model).items():
+        why = book.notes.get(stage, ["not run"])[0].removeprefix(f"{stage}: ")
+        for name in names:
+            if name not in book.estimates:
+                book.flag(name, stage, f"{why}; held at the start value")
+    if model.motor_friction.motor_law == "article":
+        book.flag(
+            "v_c",
+            "friction-velocity",
+            "C·(1 + k_v(|ω| − v_c)) = C·(1 − k_v·v_c) + C·k_v·|ω|: v_c is absorbed by s3 and k_v; held",
+        )
+        book.flag("a0", "friction-position", "a constant, collinear with s3: fixed at 0 (the mean is in s3)")
+        book.flag(
+            "b_m",
+            "friction-velocity",
+            "b_m·ω and C·k_v·|ω| both grow ∝ ω at steady speed: held (MODEL.md note 3: 0 with the"
+            " article law)",
+        )
+    lf = model.load_friction
+    if lf is not None:
+        if "f_cl" not in book.estimates and "f_cl" in load_friction_names(model):
+            why = book.notes.get("stiffness", ["not run"])[0].removeprefix("stiffness: ")
+            for name in load_friction_names(model):
+                book.flag(
+                    name,
+                    "stiffness",
+                    "the load's friction adds r·F_l to the motor's torque at steady speed, inseparable from"
+                    f" s3 by the motor current alone; the load angle's stage did not part them ({why}): held",
+                )
+        if lf.f_sl is not None:
+            book.flag(
+                "f_sl",
+                "stiffness",
+                "the load's breakaway is not timed by these data (the load angle's noise hides when the"
+                " load starts at the sticks' slow speeds): held (at least f_cl)",
+            )
+    if model.kinematic_error is not None:
+        book.flag("k", "kinematic-error", "cycles of the error per motor turn: structural, held")
+    if model.nonlinear_stiffness is not None:
+        for name in ("T1", "T2"):
+            book.flag(name, "stiffness", "breakpoint torque: held at the start model's (catalog) value")
+    for section, held in (
+        ("hysteresis", ("T_h", "delta_h")),
+        ("thermal_drift", ("d_th", "tau_th")),
+    ):
+        if getattr(model, section) is not None:
+            for name in held:
+                book.flag(name, "structural", f"{section} is not estimated by the staged fit: held")
+    data = model.to_dict()
+    sections = {**data["motor_friction"], **data.get("load_friction", {})}
+    for name in ("sigma0_m", "sigma1_m", "sigma0_l", "sigma1_l"):
+        if name in sections:
+            book.flag(name, "structural", "bristle dynamics are not seen by steady runs: held")
+
+
+def staged_estimates(runs: list[Run], start: HarmonicDriveModel) -> StagedResult:
+    """Staged estimates of the model's parameters from the runs, starting from `start` (see the module)."""
+    if not runs:
+        raise UserInputError("staged identification needs at least one run")
+    book = _Book(start)
+    if start.motor_friction.motor_law == "article" and start.motor_friction.fourier_a()[0] != 0.0:
+        book.update({"a0": 0.0})
+    _rig_constants(runs, book)
+    motor = motor_constants(runs_of(runs, "pulse"))
+    book.accept("motor", motor, ["R", "K_b"])
+    offset = 0.0
+    for _ in range(ROUNDS):
+        offset = _mechanics(runs, book)
+        _friction(runs, book)
+    brk = breakaway(runs, book.model, offset)
+    book.accept("breakaway", brk, ["static_factor", "f_sm"])
+    _structural(runs, book)
+    present = {str(run.meta.get("experiment")) for run in runs}
+    notes = [f"experiments: {', '.join(sorted(present))}"]
+    notes += [note for stage_notes in book.notes.values() for note in stage_notes]
+    return StagedResult(book.model, list(book.estimates.values()), notes)
