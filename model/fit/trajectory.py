@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.signal import savgol_filter
 
 from model import kernel as k
 from model.errors import UserInputError
@@ -28,7 +29,9 @@ from model.plant import Plant
 from model.run import Run
 from model.simulate import replay_mode, replay_rows
 
-CHANNELS = {"theta_m": k.OUT_THETA_M, "omega_m": k.OUT_OMEGA_M, "theta_l": k.OUT_THETA_L}
+CHANNELS = {"theta_m": k.OUT_THETA_M, "theta_l": k.OUT_THETA_L}
+"""Positions only: a drive's speed is a filtered encoder difference, which the true speed of the model
+would be compared to with a lag and a bias; positions are only quantized and noisy."""
 SIGNED = re.compile(r"s1|s2|a\d+|b\d+|k_v|phi|f_dir|d_th")
 """Parameters that may take either sign; every other parameter of MODEL.md is positive."""
 
@@ -60,16 +63,53 @@ class _Window:
     scales: dict[str, float]
 
 
-def shooting_windows(run: Run, window_s: float) -> list[Run]:
-    """Cut a run into consecutive windows of about `window_s`, each a run of its own."""
+def shooting_windows(run: Run, window_s: float, quiet_rows: int = 6) -> list[Run]:
+    """Cut a run into consecutive windows of about `window_s`, each a run of its own.
+
+    Each cut is moved (by up to a quarter window) to where the input has been steady for `quiet_rows`
+    each side, so a window never starts on a jump of the input, where no smoothed speed is right.
+    """
     t = run.t
     edges = np.searchsorted(t, np.arange(t[0], t[-1], window_s))
-    edges = np.append(edges, len(t))
+    column = run.input_column
+    if column is not None:
+        drive = run[column]
+        jumps = np.flatnonzero(np.abs(np.diff(drive)) > 1e-9 * (np.max(np.abs(drive)) + 1e-300)) + 1
+        reach = max(1, int(0.25 * window_s / float(np.median(np.diff(t)))))
+        for i, edge in enumerate(edges[1:], start=1):
+            for shift in sorted(range(-reach, reach + 1), key=abs):
+                e = edge + shift
+                near = jumps[(jumps > e - quiet_rows) & (jumps <= e + quiet_rows)]
+                if 0 < e < len(t) and near.size == 0:
+                    edges[i] = e
+                    break
+    edges = np.unique(np.append(edges, len(t)))
     out = []
     for start, stop in itertools.pairwise(edges):
         if stop - start >= 3:
             out.append(Run({c: v[start:stop] for c, v in run.columns.items()}, run.meta))
     return out
+
+
+def with_smooth_velocities(run: Run, window_s: float = 0.011) -> Run:
+    """The run with ω_m, ω_l from a centred local cubic fit of the positions (Savitzky–Golay).
+
+    Each shooting window starts from the measured state; a drive's own speed is filtered, so it lags
+    by a millisecond or more, and starting from it biases every window during accelerations.
+    """
+    dt = float(np.median(np.diff(run.t)))
+    length = max(5, round(window_s / dt) | 1)
+    columns = dict(run.columns)
+    for pos, vel in (("theta_m", "omega_m"), ("theta_l", "omega_l")):
+        if pos in columns and len(columns[pos]) > length:
+            theta = columns[pos]
+            omega = savgol_filter(theta, length, 3, deriv=1, delta=dt)
+            # An encoder at rest reads the same count: that is zero speed, not quantization noise.
+            still = np.zeros(len(theta), bool)
+            still[1:-1] = (theta[:-2] == theta[1:-1]) & (theta[1:-1] == theta[2:])
+            omega[still] = 0.0
+            columns[vel] = omega
+    return Run(columns, run.meta)
 
 
 def _channel_scales(run: Run, channels: list[str], windows: list[Run]) -> dict[str, float]:
@@ -89,14 +129,13 @@ class TrajectoryProblem:
     def __init__(
         self, model: HarmonicDriveModel, runs: list[Run], names: list[str], window_s: float, dt_s: float
     ) -> None:
-        if not names:
-            raise UserInputError("a trajectory fit needs at least one free parameter")
         self.model = model
         self.names = names
         self.dt_s = dt_s
         self.start = get_values(model, names)
         self.windows: list[_Window] = []
         for run in runs:
+            run = with_smooth_velocities(run)
             channels = [c for c in CHANNELS if c in run]
             pieces = shooting_windows(run, window_s)
             scales = _channel_scales(run, channels, pieces)
@@ -115,6 +154,10 @@ class TrajectoryProblem:
         except UserInputError:
             # Outside the model's valid region (e.g. a negative inertia): a large, smooth penalty.
             return np.full(self.size, 1e3)
+        return self.residuals_of(model)
+
+    def residuals_of(self, model: HarmonicDriveModel) -> np.ndarray:
+        """The scaled residual of any model on these windows (the same scales, so costs compare)."""
         plant = Plant(model)
         parts = []
         for w in self.windows:
@@ -137,6 +180,8 @@ def fit_trajectories(
     max_evaluations: int = 60,
 ) -> TrajectoryFit:
     """Refine the named parameters of `model` on the runs; estimates with standard errors."""
+    if not names:
+        raise UserInputError("a trajectory fit needs at least one free parameter")
     problem = TrajectoryProblem(model, runs, names, window_s, dt_s)
     x0 = np.array([problem.start[n] for n in names]) / problem.x_scale
     lower = np.array([-np.inf if SIGNED.fullmatch(n) else 0.0 for n in names])
