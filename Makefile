@@ -15,13 +15,17 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-# The main job on the embedded defaults: the characterization campaign on the simulated rig, each run
-# stored under $HDRIG_HOME (here results/store unless set) and its line printed as it lands.
+# The main job on the embedded defaults: the characterization campaign on the simulated rig (each run
+# stored under $HDRIG_HOME, here results/store unless set, its line printed as it lands), then a fit of
+# the seed model to those runs with the validation report.
+HOME_DIR = $${HDRIG_HOME:-$(CURDIR)/$(OUT)/store}
 run: install
 	@mkdir -p $(OUT)
-	HDRIG_HOME="$${HDRIG_HOME:-$(CURDIR)/$(OUT)/store}" $(BIN)/hdrig run campaign --rig configs/rigs/sim.yaml
-	@home="$${HDRIG_HOME:-$(CURDIR)/$(OUT)/store}"; echo "results: $$home/runs/<id>/ (data.parquet;"\
-	  "artifacts/: tables, results.json, plots/); list them: HDRIG_HOME=$$home $(BIN)/hdrig runs list"
+	HDRIG_HOME="$(HOME_DIR)" $(BIN)/hdrig run campaign --rig configs/rigs/sim.yaml
+	@echo "runs: $(HOME_DIR)/runs/<id>/ (data.parquet; artifacts/: tables, results.json, plots/)"
+	HDRIG_HOME="$(HOME_DIR)" $(BIN)/hdrig fit --data latest --model seed --out $(OUT)/fitted-seed.yaml \
+	  --report $(OUT)/fit-report -q
+	@echo "fitted model: $(CURDIR)/$(OUT)/fitted-seed.yaml; report: $(CURDIR)/$(OUT)/fit-report/report.md"
 
 lint: install
 	$(BIN)/ruff check .

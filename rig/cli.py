@@ -280,6 +280,72 @@ def cmd_runs_export(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- hdrig fit -----------------------------------------------------------------------------------
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from rig.identify import identify, load_runs, save_identified
+    from rig.progress import ProgressBar
+
+    start = load_model(args.model)
+    runs = load_runs(args.data)
+    with ProgressBar(enabled=not args.quiet) as bar:
+        result = identify(runs, start, joint=not args.no_joint, report_dir=args.report, progress=bar)
+    save_identified(result, Path(args.out))
+    if args.json:
+        _print_json(result.as_json())
+        return 0
+    width = max(len(row.name) for row in result.parameters)
+    for row in result.parameters:
+        sigma = f"± {row.uncertainty:.3g}" if row.uncertainty is not None else "not determined"
+        note = f"  ({row.note})" if row.note and not row.identifiable else ""
+        print(f"{row.name:<{width}}  {row.estimate:>12.6g}  {sigma:<16} {row.stage}{note}")
+    print(f"fit error: {result.fit_error_before:.4g} → {result.fit_error_after:.4g}")
+    print(f"model: {result.model_file}")
+    if result.report_file is not None:
+        print(f"report: {result.report_file}")
+    return 0
+
+
+# --- hdrig gaps ----------------------------------------------------------------------------------
+
+
+def cmd_gaps(args: argparse.Namespace) -> int:
+    from model.gaps import find_gaps
+    from model.params import save_model
+    from rig.progress import ProgressBar
+    from rig.runfile import READ_SUFFIXES, read_run
+    from rig.store import RunStore
+
+    model = load_model(args.model)
+    runs = []
+    for item in args.data:  # a run file, else a run id in the store
+        path = Path(item)
+        runs.append(
+            read_run(path) if path.exists() or path.suffix.lower() in READ_SUFFIXES else RunStore().read(item)
+        )
+    with ProgressBar(enabled=not args.quiet) as bar:
+        result = find_gaps(runs, model, report_dir=args.report, progress=bar, model_out=args.out)
+    if result.final_model is None and result.steps:
+        result.final_model = save_model(result.model, Path(f"{model.name}-gaps.yaml"))
+    elif result.final_model is None:  # nothing added: the given model is the one that explains the data
+        result.final_model = (
+            Path(args.model) if Path(args.model).exists() else PRESET_DIR / f"{args.model}.yaml"
+        )
+    if args.json:
+        _print_json(result.to_json())
+        return 0
+    print(result.verdict)
+    for number, step in enumerate(result.steps, 1):
+        print(
+            f"{number}. {step.effect}: gap {step.gap_before:.4g} → {step.gap_after:.4g} rad; {step.evidence}"
+        )
+    print(f"model: {result.final_model}")
+    if result.report:
+        print(f"report: {result.report[0]}")
+    return 0
+
+
 # --- parser ---------------------------------------------------------------------------------------
 
 
@@ -404,6 +470,52 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", required=True, metavar="PATH", help="file to write, or a folder to write <RUN>.<format> in"
     )
     export.set_defaults(handler=cmd_runs_export)
+
+    fit = sub.add_parser(
+        "fit",
+        help="identify the model's parameters from runs; write the fitted model file",
+        description="Staged estimates from each experiment's data (motor constants, stiffness, inertias,"
+        " kinematic error, friction against position and velocity, breakaway), then every determined"
+        " parameter refined together on the pulse/step/sine trajectories. Parameters the data cannot"
+        " determine are reported as such and keep the starting model's value.",
+    )
+    fit.add_argument(
+        "--data",
+        required=True,
+        nargs="+",
+        metavar="RUN_OR_FILE",
+        help="run ids in the store, run files, or `latest` (the newest complete run of each experiment)",
+    )
+    fit.add_argument("--model", required=True, metavar="M", help="starting model: preset name or file")
+    fit.add_argument("--out", required=True, metavar="FILE", help="fitted model file to write (.yaml/.json)")
+    fit.add_argument("--report", type=Path, metavar="DIR", help="validation table, plots and report.md")
+    fit.add_argument("--no-joint", action="store_true", help="staged estimates only (no joint refinement)")
+    fit.add_argument("--json", action="store_true", help="one JSON document on stdout")
+    fit.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    fit.set_defaults(handler=cmd_fit)
+
+    gaps = sub.add_parser(
+        "gaps",
+        help="find where the model and the data disagree, name the missing effect, add it, show the gap",
+        description="The model-gap workflow: simulate the model on the data's own inputs over short windows"
+        " restarted from the measured state, locate the disagreement, name the MODEL.md effect that explains"
+        " it, add and fit it, and go on until nothing significant is left (an effect must shrink the gap on"
+        " held-out windows by 1.25× with determined parameters).",
+    )
+    gaps.add_argument(
+        "--data", required=True, nargs="+", metavar="RUN_OR_FILE", help="run ids in the store, or run files"
+    )
+    gaps.add_argument("--model", required=True, metavar="M", help="preset name or model file")
+    gaps.add_argument("--report", metavar="DIR", help="write summary.md, plots and model.yaml into DIR")
+    gaps.add_argument(
+        "--out",
+        metavar="FILE",
+        help="model file with the effects added (default: DIR/model.yaml with --report,"
+        " else ./<model>-gaps.yaml)",
+    )
+    gaps.add_argument("--json", action="store_true", help="one JSON document on stdout (CONTRACT.md)")
+    gaps.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    gaps.set_defaults(handler=cmd_gaps)
     return parser
 
 
