@@ -7,7 +7,11 @@ does. The start model is 15–30 % off in the parameters the fit must recover.
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -38,11 +42,16 @@ TOLERANCE = {
 
 
 @pytest.fixture(scope="module")
-def campaign(tmp_path_factory: pytest.TempPathFactory) -> list[Run]:
+def store(tmp_path_factory: pytest.TempPathFactory) -> RunStore:
     store = RunStore(tmp_path_factory.mktemp("store"))
     outcomes = run_campaign(load_rig_config("sim"), store=store, experiments=EXPERIMENTS)
     assert all(o.status == "complete" for o in outcomes)
-    return [store.read(o.run_id) for o in outcomes]
+    return store
+
+
+@pytest.fixture(scope="module")
+def campaign(store: RunStore) -> list[Run]:
+    return [store.read(entry["id"]) for entry in store.list_runs()]
 
 
 @pytest.fixture(scope="module")
@@ -98,3 +107,44 @@ def test_a_parameter_made_unidentifiable_on_purpose_is_flagged(campaign, start):
     rows = {r.name: r for r in result.parameters}
     assert not rows["f_cl"].identifiable
     assert rows["f_cl"].estimate == get_values(start, ["f_cl"])["f_cl"]
+
+
+def test_fit_command_writes_the_model_and_its_json(store: RunStore, tmp_path: Path):
+    out = tmp_path / "fitted.json"
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "rig",
+            "fit",
+            "--data",
+            "latest",
+            "--model",
+            "seed",
+            "--out",
+            str(out),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "HDRIG_HOME": str(store.home)},
+    )
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert load_model(out).motor_friction.s3 == pytest.approx(report["parameters"]["s3"]["estimate"])
+    for entry in report["parameters"].values():
+        assert {"estimate", "uncertainty", "identifiable"} <= set(entry)
+    assert {"before", "after", "metric"} <= set(report["fit_error"])
+
+
+def test_fit_command_names_a_bad_run_reference(tmp_path: Path):
+    result = subprocess.run(
+        [sys.executable, "-m", "rig", "fit", "--data", "nosuch-run", "--model", "seed", "--out", "x.yaml"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "HDRIG_HOME": str(tmp_path)},
+    )
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and "nosuch-run" in result.stderr
