@@ -21,6 +21,9 @@ MODES: dict[str, int] = {"voltage": k.MODE_VOLTAGE, "current": k.MODE_CURRENT, "
 INPUT_COLUMN: dict[str, str] = {"voltage": "u", "current": "i_cmd", "torque": "tau_m"}
 MODE_OF_COLUMN: dict[str, InputMode] = {"u": "voltage", "i_cmd": "current", "tau_m": "torque"}
 
+HIDDEN_STATES = (k.X_Z_M, k.X_Z_L, k.X_Z_H)
+"""Kernel states no sensor measures: motor and load bristle deflections, the hysteresis torque."""
+
 _LAW_CODES = {
     "article": k.LAW_ARTICLE,
     "coulomb_viscous": k.LAW_COULOMB_VISCOUS,
@@ -123,8 +126,13 @@ class Plant:
         theta_l: float | None = None,
         omega_l: float | None = None,
         time_s: float = 0.0,
+        hidden: ArrayLike | None = None,
     ) -> None:
-        """Set the state. An unknown load position means the spring is relaxed (zero deflection)."""
+        """Set the state. An unknown load position means the spring is relaxed (zero deflection).
+
+        `hidden` sets the states no sensor sees (HIDDEN_STATES: bristles, hysteresis element); zero
+        by default. `time_s` is the time since the run started (thermal drift depends on it).
+        """
         r = self.model.mechanics.r
         self.x[:] = 0.0
         self.x[k.X_THETA_M] = theta_m
@@ -133,6 +141,8 @@ class Plant:
         self.x[k.X_THETA_L] = rigid_l if theta_l is None or self.model.rigid else theta_l
         self.x[k.X_OMEGA_L] = r * omega_m if omega_l is None or self.model.rigid else omega_l
         self.x[k.X_TIME] = time_s
+        if hidden is not None:
+            self.x[list(HIDDEN_STATES)] = np.asarray(hidden, dtype=np.float64)
 
     @property
     def state(self) -> PlantState:

@@ -128,10 +128,19 @@ def replay_mode(run: Run) -> InputMode:
     return MODE_OF_COLUMN[column]
 
 
-def replay_rows(plant: Plant, run: Run, mode: InputMode, dt_s: float) -> np.ndarray:
+def replay_rows(
+    plant: Plant,
+    run: Run,
+    mode: InputMode,
+    dt_s: float,
+    time_s: float = 0.0,
+    hidden: np.ndarray | None = None,
+) -> np.ndarray:
     """Reset `plant` to the run's first state and drive it with the run's inputs; kernel rows per sample.
 
-    The plant is reused, so a fitter replaying many windows compiles the model into it only once.
+    The plant is reused, so a fitter replaying many windows compiles the model into it only once. A
+    window cut from a longer run passes its time since the run's start (`time_s`) and, if known, the
+    unseen states there (`hidden`, see `model.plant.HIDDEN_STATES`).
     """
     t = run.t
     drive = run[INPUT_COLUMN[mode]]
@@ -141,6 +150,8 @@ def replay_rows(plant: Plant, run: Run, mode: InputMode, dt_s: float) -> np.ndar
         omega_m=float(run["omega_m"][0]) if "omega_m" in run else 0.0,
         theta_l=float(run["theta_l"][0]) if "theta_l" in run else None,
         omega_l=float(run["omega_l"][0]) if "omega_l" in run else None,
+        time_s=time_s,
+        hidden=hidden,
     )
     intervals = np.diff(t)
     counts = np.array([_substeps(h, dt_s) for h in intervals])

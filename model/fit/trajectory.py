@@ -61,6 +61,7 @@ class _Window:
     run: Run
     channels: list[str]
     scales: dict[str, float]
+    time_s: float  # since the start of the run it was cut from
 
 
 def shooting_windows(run: Run, window_s: float, quiet_rows: int = 6) -> list[Run]:
@@ -139,7 +140,9 @@ class TrajectoryProblem:
             channels = [c for c in CHANNELS if c in run]
             pieces = shooting_windows(run, window_s)
             scales = _channel_scales(run, channels, pieces)
-            self.windows += [_Window(piece, channels, scales) for piece in pieces]
+            self.windows += [
+                _Window(piece, channels, scales, float(piece.t[0] - run.t[0])) for piece in pieces
+            ]
         if not self.windows:
             raise UserInputError("no data long enough to fit on (windows of at least 3 samples)")
         # Work in units of each parameter's own starting size, so steps and bounds are comparable.
@@ -161,7 +164,7 @@ class TrajectoryProblem:
         plant = Plant(model)
         parts = []
         for w in self.windows:
-            rows = replay_rows(plant, w.run, replay_mode(w.run), self.dt_s)
+            rows = replay_rows(plant, w.run, replay_mode(w.run), self.dt_s, time_s=w.time_s)
             for ch in w.channels:
                 parts.append((rows[:, CHANNELS[ch]] - w.run[ch]) / w.scales[ch])
         return np.concatenate(parts)
