@@ -35,9 +35,15 @@ lint: install
 test: lint
 	$(BIN)/pytest -q
 
+# Benchmarks print their figures beside the targets (docs/BENCHMARKS.md keeps the latest); the SINDy
+# baseline of the gap benchmark needs the `bench` extra.
 bench: install
+	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'
 	$(BIN)/python bench/bench_simulator.py
 	$(BIN)/python bench/bench_campaign.py
+	$(BIN)/python bench/bench_identify.py
+	$(BIN)/python bench/bench_daq.py
+	$(BIN)/python bench/bench_gaps.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache *.egg-info
