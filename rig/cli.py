@@ -157,6 +157,14 @@ def _summary(outcome: RunOutcome, samples: int) -> str:
     return "  ".join(parts)
 
 
+def _print_params(name: str, experiments: dict[str, Any]) -> None:
+    names = list(experiments) if name == CAMPAIGN else [name]
+    for experiment in names:
+        print(f"{experiment}: {experiments[experiment].summary}")
+        for key, info in experiments[experiment].Params.model_fields.items():
+            print(f"  {key:<24} {info.default!s:<28} {info.description or ''}")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from rig.config import load_rig_config
     from rig.experiments import EXPERIMENTS
@@ -168,6 +176,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     if name != CAMPAIGN and name not in EXPERIMENTS:
         known = ", ".join([*EXPERIMENTS, CAMPAIGN])
         raise UserInputError(f"unknown experiment {name!r} (experiments: {known})")
+    if args.params:
+        _print_params(name, EXPERIMENTS)
+        return 0
+    if args.rig is None:
+        raise UserInputError(f"run {name}: --rig RIG is required (a rig file, or a name in configs/rigs)")
     config = load_rig_config(args.rig)
     overrides = _run_overrides(name, args.set)
     store = RunStore()
@@ -372,8 +385,8 @@ class _Parser(argparse.ArgumentParser):
 RUN_EPILOG = """\
 --set: a single experiment takes key=value (e.g. --set hold_s=0.5); the campaign takes
 experiment.key=value (e.g. --set speed-sweep.hold_s=0.5). Values are YAML scalars or lists
-(--set speeds_rad_s=[1,10,100]). Every value is checked before the rig is opened; a set-point beyond
-the rig's saturation is refused when its segment comes (exit status 2, the run kept as aborted).
+(--set speeds_rad_s=[1,10,100]). `hdrig run EXPERIMENT --params` lists them. Every value is checked
+before the rig is opened, and every set-point of the program before the motor moves (exit status 2).
 
 Output: one line per run as it lands (run id, status or abort reason, samples, key metrics, and the
 run's artifacts folder with its CSV tables, results.json and plots/); --json prints one JSON document
@@ -437,7 +450,14 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     run.add_argument("experiment", metavar="EXPERIMENT", help=f"{names} or {CAMPAIGN}")
-    run.add_argument("--rig", required=True, metavar="RIG", help="rig file, or a name in configs/rigs (sim)")
+    run.add_argument(
+        "--rig", metavar="RIG", help="rig file, or a name in configs/rigs (sim); required to run"
+    )
+    run.add_argument(
+        "--params",
+        action="store_true",
+        help="list the experiment's parameters (default, unit, meaning) and exit",
+    )
     run.add_argument(
         "--set",
         action="append",
