@@ -18,7 +18,7 @@ import re
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 from scipy.signal import savgol_filter
 
 from model import kernel as k
@@ -186,28 +186,43 @@ def fit_trajectories(
     if not names:
         raise UserInputError("a trajectory fit needs at least one free parameter")
     problem = TrajectoryProblem(model, runs, names, window_s, dt_s)
-    x0 = np.array([problem.start[n] for n in names]) / problem.x_scale
-    lower = np.array([-np.inf if SIGNED.fullmatch(n) else 0.0 for n in names])
-    x0 = np.maximum(x0, np.where(np.isfinite(lower), 1e-9, -np.inf))  # strictly inside the bounds
-    r0 = problem.residuals(x0)
-    # Friction makes the residual piecewise smooth in the parameters: a relative step of 1e-2 keeps
-    # finite differences above the jumps that stick/slip timing adds (1e-3 stalls on them), and short
-    # windows keep those jumps few (0.5 s windows stall, 0.1 s windows recover exact values).
-    result = least_squares(
-        problem.residuals,
-        x0,
-        bounds=(lower, np.full(len(names), np.inf)),
-        method="trf",
-        diff_step=1e-2,
-        x_scale=1.0,
-        max_nfev=max_evaluations,
-    )
-    estimates = _uncertainty(problem, result.x, result.jac, result.fun)
+    r0 = problem.residuals(start_point(problem))
+    result, estimates = solve(problem, max_evaluations)
     final = {p.name: p.estimate for p in estimates}
     fitted = with_values(model, final)
     x_final = np.array([final[n] for n in names]) / problem.x_scale
     notes = [f"least_squares: {result.message} ({result.nfev} evaluations)"]
     return TrajectoryFit(fitted, estimates, _rms(r0), _rms(problem.residuals(x_final)), len(r0), notes)
+
+
+def start_point(problem: TrajectoryProblem) -> np.ndarray:
+    """The scaled start, nudged strictly inside the bounds (positive parameters stay positive)."""
+    x0 = np.array([problem.start[n] for n in problem.names]) / problem.x_scale
+    return np.maximum(x0, np.where(np.isfinite(_lower_bounds(problem.names)), 1e-9, -np.inf))
+
+
+def _lower_bounds(names: list[str]) -> np.ndarray:
+    return np.array([-np.inf if SIGNED.fullmatch(n) else 0.0 for n in names])
+
+
+def solve(problem: TrajectoryProblem, max_evaluations: int) -> tuple[OptimizeResult, list[ParameterEstimate]]:
+    """Bounded least squares on the problem's residual, then the estimates with their uncertainty.
+
+    Friction makes the residual piecewise smooth in the parameters: a relative step of 1e-2 keeps
+    finite differences above the jumps that stick/slip timing adds (1e-3 stalls on them), and short
+    windows keep those jumps few (0.5 s windows stall, 0.1 s windows recover exact values).
+    """
+    names = problem.names
+    result = least_squares(
+        problem.residuals,
+        start_point(problem),
+        bounds=(_lower_bounds(names), np.full(len(names), np.inf)),
+        method="trf",
+        diff_step=1e-2,
+        x_scale=1.0,
+        max_nfev=max_evaluations,
+    )
+    return result, _uncertainty(problem, result.x, result.jac, result.fun)
 
 
 def _rms(residual: np.ndarray) -> float:

@@ -20,12 +20,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from model import kernel as k
 from model.errors import UserInputError
 from model.fit.parameters import with_values
-from model.fit.trajectory import SIGNED, ParameterEstimate, TrajectoryProblem, _uncertainty
+from model.fit.trajectory import ParameterEstimate, TrajectoryProblem, solve
 from model.gaps.residual import one_step_residual
 from model.gaps.signals import Signals, Window
 from model.params import HarmonicDriveModel
@@ -150,19 +149,6 @@ def fit_on_windows(
         step = max(1, math.ceil(len(rest) / (max_windows - len(worst))))
         train = sorted(worst + rest[::step])
     problem = _GapProblem(model, shooting, names, ties or {}, train)
-    x0 = np.array([problem.start[n] for n in names]) / problem.x_scale
-    lower = np.array([-np.inf if SIGNED.fullmatch(n) else 0.0 for n in names])
-    x0 = np.maximum(x0, np.where(np.isfinite(lower), 1e-9, -np.inf))
-    # The settings of model.fit.trajectory.fit_trajectories, for the same piecewise-smooth residual.
-    result = least_squares(
-        problem.residuals,
-        x0,
-        bounds=(lower, np.full(len(names), np.inf)),
-        method="trf",
-        diff_step=1e-2,
-        x_scale=1.0,
-        max_nfev=max_iterations,
-    )
-    estimates = _uncertainty(problem, result.x, result.jac, result.fun)
+    result, estimates = solve(problem, max_iterations)
     fitted = problem.model_at({p.name: p.estimate for p in estimates})
     return EffectFit(fitted, estimates, int(result.nfev) * (len(names) + 1))
