@@ -1,0 +1,206 @@
+"""Closed-loop benchmark (`python bench/bench_canopen.py`): 1 kHz SYNC on the virtual CAN bus for 60 s.
+
+The `virtual-can` rig (configs/rigs/virtual-can.yaml) paced to the wall clock: the servo driver, the
+DAQ driver and the rig's alignment, against the drive twin and the DAQ twin — all in this one
+process, so the twins' threads share the interpreter with the loop (on a bench they are other
+machines). One velocity segment, a slow sine ω = A·sin(2π·f·t) (default 20 rad/s at 0.1 Hz: the arm
+sweeps 0.64 rad at the output, inside its stroke). Prints a table with the targets; asserts nothing.
+
+- cycle time: from the SYNC going out to the loop being done with the cycle (the drive's answer
+  decoded, the envelope checked, the DAQ's samples taken, and at each chunk's end θ_l interpolated)
+  [ms]; the next SYNC is due one period after the last;
+- within the period: the share of cycles whose cycle time is at most the 1 ms period (target ≥ 99.9 %);
+- SYNC interval: time between consecutive SYNCs, and how many came later than 1.5 periods;
+- samples lost, servo: cycles asked for less rows recorded, rows whose plant time does not follow the
+  previous one by exactly a period, and SYNCs the drive twin took beyond the rows (target 0);
+- samples lost, DAQ: by the frames' sequence numbers (the driver's decoder, the stream's tail
+  included) and by the samples' indices (target 0);
+- DAQ sustained rate: samples received / host time they span, against the configured rate; and
+  the rows whose θ_l was extrapolated (a chunk's end that could not wait longer for the DAQ).
+
+The machine's load is printed with the figures: the 1-minute load average before and after, the
+share of all CPUs busy during the run (/proc/stat), and this process's CPU time over the wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivers.hardware_rig import CycleLog
+from rig.config import RIG_DIR, load_rig_config
+from rig.interface import ControlMode, Segment
+from sim_backend.virtual_bus import VirtualCanRig
+
+RIG = RIG_DIR / "virtual-can.yaml"
+WITHIN_PERIOD_TARGET = 0.999
+LATE_SYNC_PERIODS = 1.5
+PERCENTILES = (50, 90, 99, 99.9)
+
+
+@dataclass(frozen=True)
+class Line:
+    metric: str
+    measured: str
+    target: str = ""
+    ok: bool | None = None  # None: reported, no target
+
+    @property
+    def verdict(self) -> str:
+        return "" if self.ok is None else ("PASS" if self.ok else "MISS")
+
+
+def cpu_busy() -> tuple[int, int] | None:
+    """(busy, total) jiffies of all CPUs since boot, from /proc/stat; None where there is none."""
+    try:
+        fields = [int(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+    except (OSError, ValueError, IndexError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+    return sum(fields) - idle, sum(fields)
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def ms(values: np.ndarray) -> str:
+    return (
+        " / ".join(f"{np.percentile(values, p) * 1e3:.3f}" for p in PERCENTILES)
+        + f" / {values.max() * 1e3:.3f}"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--duration", type=float, default=60.0, help="seconds of closed loop (default 60)")
+    parser.add_argument("--amplitude", type=float, default=20.0, help="sine speed amplitude [rad/s] (20)")
+    parser.add_argument("--frequency", type=float, default=0.1, help="sine frequency [Hz] (0.1)")
+    parser.add_argument("--daq-rate", type=float, help="DAQ sample rate [Hz] (default: the rig file's)")
+    parser.add_argument("--daq-block", type=int, help="DAQ samples per frame (default: the rig file's)")
+    args = parser.parse_args()
+
+    config = load_rig_config(RIG)
+    daq = dict(config.extra.get("daq") or {})
+    if args.daq_rate is not None:
+        daq["rate_hz"] = args.daq_rate
+    if args.daq_block is not None:
+        daq["samples_per_frame"] = args.daq_block
+    config = config.model_copy(update={"pace": "realtime", "daq": daq})
+    period = 1.0 / config.sample_rate_hz
+    cycles = round(args.duration * config.sample_rate_hz)
+    t = np.arange(cycles) * period
+    setpoint = args.amplitude * np.sin(2 * math.pi * args.frequency * t)
+    stroke_out = 2 * args.amplitude / (2 * math.pi * args.frequency) * 0.01
+    print(
+        f"Closed loop on {RIG.name}, paced: {config.sample_rate_hz:g} Hz SYNC for {args.duration:g} s,"
+        f" velocity ω = {args.amplitude:g}·sin(2π·{args.frequency:g}·t) rad/s (output sweeps"
+        f" {stroke_out:.2f} rad)"
+    )
+    print(
+        f"{platform.python_implementation()} {platform.python_version()}, {cpu_model()},"
+        f" {os.cpu_count()} CPUs; twins in this process\n"
+    )
+
+    load_before = os.getloadavg()[0]
+    blocks: list[dict[str, np.ndarray]] = []
+    rig = VirtualCanRig(config)
+    with rig:
+        assert rig.twin is not None and rig.daq is not None
+        daq_rate = rig.daq.command("RATE?")
+        rig.cycle_log = CycleLog()
+        rig.enable()
+        syncs_before = rig.twin.sync_count
+        busy0, cpu0, wall0 = cpu_busy(), time.process_time(), time.monotonic()
+        result = rig.run_segment(Segment(ControlMode.VELOCITY, setpoint, 0.0, "sine"), blocks.append)
+        busy1, cpu1, wall1 = cpu_busy(), time.process_time(), time.monotonic()
+        syncs = rig.twin.sync_count - syncs_before
+        rig.disable()
+        tally = rig.daq_tally
+        log = rig.cycle_log.arrays()
+    load_after = os.getloadavg()[0]
+
+    rows = np.concatenate([b["t"] for b in blocks]) if blocks else np.empty(0)
+    cycle_time = log["t_done_s"] - log["t_sync_s"]
+    interval = np.diff(log["t_sync_s"])
+    within = float(np.mean(cycle_time <= period))
+    late = int(np.count_nonzero(interval > LATE_SYNC_PERIODS * period))
+    plant_steps = np.diff(rows)
+    broken = int(np.count_nonzero(np.abs(plant_steps - period) > 1e-9))
+    missing_rows = cycles - len(rows)
+    extra_syncs = syncs - len(rows)
+    servo_lost = missing_rows + broken + abs(extra_syncs)
+    seq_lost = sum(s.lost_samples for s in tally.streams)
+    daq_lost = seq_lost + tally.index_gaps
+    configured = float(daq_rate)
+    sustained = (tally.samples - 1) / (tally.last_t_s - tally.first_t_s) if tally.samples > 1 else 0.0
+
+    lines = [
+        Line(
+            "cycles run", f"{len(rows)} of {cycles}", f"{cycles}", len(rows) == cycles and not result.aborted
+        ),
+        Line("cycle time, ms: p50 / p90 / p99 / p99.9 / max", ms(cycle_time), f"≤ {period * 1e3:g}"),
+        Line(
+            "cycles completed within the period",
+            f"{within:.4%}",
+            f"≥ {WITHIN_PERIOD_TARGET:.1%}",
+            within >= WITHIN_PERIOD_TARGET,
+        ),
+        Line("SYNC → answer latency, ms: p50 / p90 / p99 / p99.9 / max", ms(log["latency_s"])),
+        Line("SYNC interval, ms: p50 / p90 / p99 / p99.9 / max", ms(interval)),
+        Line(f"SYNCs later than {LATE_SYNC_PERIODS:g} periods", f"{late}"),
+        Line(
+            "samples lost, servo (missing rows + plant-time breaks + SYNC count mismatch)",
+            f"{missing_rows} + {broken} + {abs(extra_syncs)} = {servo_lost}",
+            "0",
+            servo_lost == 0,
+        ),
+        Line(
+            "samples lost, DAQ (by sequence number + by sample index)",
+            f"{seq_lost} + {tally.index_gaps} = {daq_lost}",
+            "0",
+            daq_lost == 0,
+        ),
+        Line("rows with θ_l extrapolated past the newest DAQ sample", f"{tally.extrapolated}"),
+        Line(
+            "DAQ sustained rate, samples/s",
+            f"{sustained:.1f} ({tally.samples} samples)",
+            f"{configured:g} (± 0.1 %)",
+            abs(sustained - configured) <= 1e-3 * configured,
+        ),
+    ]
+    width = max(len(line.metric) for line in lines)
+    mwidth = max(len(line.measured) for line in lines)
+    header = f"{'metric':<{width}}  {'measured':<{mwidth}}  {'target':<12}  verdict"
+    print(header)
+    print("-" * len(header))
+    for line in lines:
+        print(f"{line.metric:<{width}}  {line.measured:<{mwidth}}  {line.target:<12}  {line.verdict}")
+
+    wall = wall1 - wall0
+    busy = ""
+    if busy0 is not None and busy1 is not None and busy1[1] > busy0[1]:
+        busy = f", all CPUs {100 * (busy1[0] - busy0[0]) / (busy1[1] - busy0[1]):.0f} % busy"
+    print(
+        f"\nmachine load: 1-min load average {load_before:.2f} before, {load_after:.2f} after{busy};"
+        f" this process {100 * (cpu1 - cpu0) / wall:.0f} % of one CPU over {wall:.1f} s"
+    )
+    if result.aborted:
+        print(f"run aborted: {result.aborted}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,621 @@
+"""The hardware rig: a CiA 402 servo on CANopen and the serial DAQ, composed behind the rig interface.
+
+`backend: canopen`. The servo (`drivers.canopen_servo`) is cycled once per sample; the DAQ
+(`drivers.serial_daq`) streams at its own rate on its own clock. Each row of the run is one SYNC:
+
+- `t`: the host time the SYNC went out, from when the rig was opened (a `sample_clock` may replace it:
+  the virtual backend gives the plant's own time);
+- `theta_m`, `omega_m`, `i_a`: what the drive answered that SYNC (position and velocity actual,
+  current actual, or torque actual / K_m where the drive has no current object);
+- `theta_l`: the DAQ's output angle interpolated (`np.interp`) at the SYNC's host time. The DAQ's
+  samples carry host times through its clock-offset estimate (refreshed every `daq.clock_every_s`
+  by a thread of this rig, so a drifting board stays aligned). The samples decoded are taken after
+  each cycle, in the period's slack, and interpolated at the chunk's end, once one after its last
+  SYNC is in. Paced, that wait ends in time for the next SYNC: rows still past the newest sample
+  then (at most EXTRAPOLATE_MAX_PERIODS; counted in `daq_tally.extrapolated`) are extrapolated
+  along its last two samples. Without a DAQ, `hardware.theta_l_from_motor: true` must say so, and
+  θ_l is then r·θ_m, a rigid stand-in (the rig file, recorded with every run, shows it);
+- `u`: a CiA 402 drive does not report its voltage. It is estimated as u = R·i_a + K_b·ω_m (the
+  terminal voltage that drives the measured current at the measured speed, inductance neglected),
+  with R = `hardware.motor_resistance_ohm` and K_b = `hardware.back_emf_v_s_rad` (default: the
+  torque constant, equal to K_b in SI units for a DC motor);
+- `i_cmd`: the current target in current mode (CST); in velocity and position modes the drive's
+  own current command is not on the bus, and the current it reports stands in for it;
+- `setpoint`, `tau_ext`: as commanded. A bench has no load actuator, so a segment asking for a load
+  torque is refused (`load` is given only by the virtual backend, which sets the twin's load).
+
+Modes: current → CST, velocity → CSV, position → CSP; voltage is refused (CiA 402 has no voltage
+mode). A mode change between segments is disable → configure → enable (the drive refuses a remap
+while powered); the cycles it takes are not recorded, so `t` jumps over them.
+
+While enabled, the rig keeps the garbage collector off the objects that existed at `enable()`
+(`_FrozenHeap`): a full collection would stall the loop for 50-80 ms.
+
+Every cycle the rig envelope is checked (`rig.safety.envelope_breach`) with the measured values, and
+the chunk ends at the first breach. A drive that faults or leaves OPERATION ENABLED on its own, or
+goes silent, is stopped at once and its rows are kept; the error (one line, with its EMCYs) is raised
+at the rig's next call, which `run_segment` makes straight away.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Final
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from drivers.canopen_servo import OPERATION_MODE_FOR, CanopenServo, CanopenServoError, Feedback
+from drivers.cia402 import OperationMode, State
+from drivers.daq_protocol import STATUS_CAP_RANGE, STATUS_ENCODER_FAULT, DecoderStats
+from drivers.serial_daq import DEFAULT_BAUDRATE, DaqError, SampleBlock, SerialDaq
+from model.errors import UserInputError, describe_validation_error
+from rig.config import RigConfig
+from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, RigError, Segment
+from rig.safety import NO_ABORT, envelope_breach, limits_vector
+
+logger = logging.getLogger(__name__)
+
+RAW_CAN_LOG: Final = "raw_can.blf"
+"""The raw CAN traffic of a run, beside its data (`record_raw_to`)."""
+CLOCK_EXCHANGES_AT_START: Final = 16
+CLOCK_EXCHANGES_WHILE_STREAMING: Final = 4
+DAQ_MERGE_PARTS: Final = 32
+"""The samples taken are merged into one array each whenever this many pieces have gathered."""
+ALIGN_MARGIN_S: Final = 300e-6
+"""Paced, what a chunk's end keeps of the period, after the wait for the DAQ, to interpolate."""
+EXTRAPOLATE_MAX_PERIODS: Final = 2
+"""Paced, rows at most this many periods past the newest DAQ sample are extrapolated; further, the
+chunk's end waits for the DAQ."""
+_COLUMN = {name: i for i, name in enumerate(SAMPLE_COLUMNS)}
+
+Load = Callable[[float], None]
+"""Applies the load torque τ_ext [N·m] of the next cycle (the virtual backend's twin; no bench has one)."""
+SampleClock = Callable[[Feedback], float]
+"""The `t` of a row from the drive's answer [s]."""
+
+
+class _FrozenHeap:
+    """Keeps the cyclic garbage collector off the objects that exist while any rig is enabled.
+
+    A full collection walks every tracked object of the interpreter (~10⁵ here: numba, scipy,
+    canopen's dictionaries) with the GIL held: 50-80 ms, long enough to stall the SYNC grid and to
+    time out the drive's answer. Enabling a rig collects once, then freezes what exists (`gc.freeze`),
+    so that collections during the run walk only what the run makes; the last rig to disable or
+    close unfreezes it, and garbage among those objects is collected again from then on.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._holders = 0
+
+    def hold(self) -> None:
+        with self._lock:
+            self._holders += 1
+            if self._holders == 1:
+                gc.collect()
+                gc.freeze()
+
+    def release(self) -> None:
+        with self._lock:
+            self._holders -= 1
+            if self._holders == 0:
+                gc.unfreeze()
+
+
+_FROZEN_HEAP = _FrozenHeap()
+
+
+class HardwareConfigError(UserInputError):
+    """The `hardware:` or `daq:` section cannot drive this rig; one line naming the field."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DaqStreamSettings(_Section):
+    """How the DAQ streams (a rig config's `daq:` section, less the line)."""
+
+    rate_hz: float = Field(default=5000.0, gt=0, le=20000, description="DAQ sample rate, ≥ the rig's [Hz]")
+    samples_per_frame: int = Field(default=10, ge=1, le=100, description="samples per data frame (BLOCK)")
+    timeout_s: float = Field(default=1.0, gt=0, description="wait for a reply or for samples [s]")
+    clock_every_s: float = Field(
+        default=2.0,
+        ge=0,
+        description="refresh the clock-offset estimate this often while streaming; 0: never",
+    )
+
+
+class DaqSettings(DaqStreamSettings):
+    """A rig config's `daq:` section for a bench: the serial line and the stream."""
+
+    url: str = Field(description="pyserial URL: /dev/ttyACM0, COM3, socket://host:port...")
+    baudrate: int = Field(default=DEFAULT_BAUDRATE, gt=0, description="line speed (UART) [baud]")
+
+
+class HardwareSettings(_Section):
+    """A rig config's `hardware:` section: what the bench is, beyond what the drive reports."""
+
+    gear_ratio: float = Field(
+        gt=0, le=1, description="output/input ratio r of the transmission (0.01: 100:1)"
+    )
+    motor_resistance_ohm: float = Field(gt=0, description="motor armature resistance R, for the u estimate")
+    back_emf_v_s_rad: float | None = Field(
+        default=None, gt=0, description="motor back-EMF constant K_b [V·s/rad]; default: the torque constant"
+    )
+    theta_l_from_motor: bool = Field(
+        default=False, description="no DAQ: record r·θ_m as theta_l (a rigid stand-in); needs no `daq:`"
+    )
+
+
+def _section(config: RigConfig, name: str, schema: type[_Section], required: bool) -> _Section | None:
+    data = config.extra.get(name)
+    if data is None and not required:
+        return None
+    if not isinstance(data, dict):
+        raise HardwareConfigError(f"rig {config.name!r}: a `{name}:` section is needed for this backend")
+    try:
+        return schema.model_validate(data)
+    except ValidationError as exc:
+        raise HardwareConfigError(f"rig {config.name!r}: {name} {describe_validation_error(exc)}") from None
+
+
+def daq_section(config: RigConfig, schema: type[DaqStreamSettings]) -> DaqStreamSettings | None:
+    """The rig's `daq:` section read with `schema` (None when there is none), checked against its rate."""
+    section = _section(config, "daq", schema, required=False)
+    assert section is None or isinstance(section, DaqStreamSettings)
+    if section is not None and section.rate_hz < config.sample_rate_hz:
+        raise HardwareConfigError(
+            f"rig {config.name!r}: daq.rate_hz {section.rate_hz:g} is below the rig's"
+            f" {config.sample_rate_hz:g} Hz: theta_l would be interpolated over more than a cycle"
+        )
+    return section
+
+
+@dataclass(frozen=True)
+class BenchConstants:
+    """What the rig needs to know of the bench that the drive does not tell."""
+
+    gear_ratio: float
+    torque_constant_nm_per_a: float
+    resistance_ohm: float
+    back_emf_v_s_rad: float
+    daq: DaqStreamSettings | None
+    theta_l_from_motor: bool = False
+
+    @classmethod
+    def from_rig_config(cls, config: RigConfig, torque_constant_nm_per_a: float) -> BenchConstants:
+        hardware = _section(config, "hardware", HardwareSettings, required=True)
+        assert isinstance(hardware, HardwareSettings)
+        daq = daq_section(config, DaqSettings)
+        if daq is None and not hardware.theta_l_from_motor:
+            raise HardwareConfigError(
+                f"rig {config.name!r}: no `daq:` section: give the DAQ's url, or set"
+                " hardware.theta_l_from_motor: true to record r·θ_m as theta_l"
+            )
+        if daq is not None and hardware.theta_l_from_motor:
+            raise HardwareConfigError(
+                f"rig {config.name!r}: hardware.theta_l_from_motor is for a rig without a `daq:` section"
+            )
+        return cls(
+            gear_ratio=hardware.gear_ratio,
+            torque_constant_nm_per_a=torque_constant_nm_per_a,
+            resistance_ohm=hardware.motor_resistance_ohm,
+            back_emf_v_s_rad=hardware.back_emf_v_s_rad or torque_constant_nm_per_a,
+            daq=daq,
+            theta_l_from_motor=hardware.theta_l_from_motor,
+        )
+
+
+@dataclass
+class CycleLog:
+    """Per-cycle timing, kept when a caller sets `rig.cycle_log` (benchmarks, tests): host clock [s]."""
+
+    t_sync_s: list[float] = field(default_factory=list)
+    """When the SYNC went out."""
+    latency_s: list[float] = field(default_factory=list)
+    """From the SYNC to the drive's last TPDO answering it."""
+    t_done_s: list[float] = field(default_factory=list)
+    """When the loop was done with the cycle: the row checked against the envelope, the DAQ's samples
+    taken (every DAQ_DRAIN_CYCLES) and, at a chunk's end, θ_l interpolated."""
+    daq_theta_m_rad: list[float] = field(default_factory=list)
+    """The DAQ's own motor angle at the SYNC (NaN without a DAQ): its encoder against the drive's
+    shows how well the two streams are aligned."""
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {name: np.asarray(values) for name, values in vars(self).items()}
+
+
+@dataclass
+class DaqTally:
+    """What the DAQ delivered to this rig across its streams."""
+
+    samples: int = 0
+    index_gaps: int = 0
+    """Samples missing between consecutive sample indices (lost on the line or in the board)."""
+    flagged: int = 0
+    """Samples with an encoder fault or a clipped capacitive reading."""
+    extrapolated: int = 0
+    """Rows whose θ_l was extrapolated past the newest sample rather than interpolated (paced)."""
+    first_t_s: float = math.nan
+    last_t_s: float = math.nan
+    streams: list[DecoderStats] = field(default_factory=list)
+    """The decoder's counts at the end of each stream (lost frames and samples by sequence number)."""
+    _next_index: int | None = None
+
+    def add(self, block: SampleBlock) -> None:
+        n = len(block)
+        if not n:
+            return
+        first, last = int(block.index[0]), int(block.index[-1])
+        if self._next_index is not None:
+            self.index_gaps += max(0, first - self._next_index)
+        self.index_gaps += last - first + 1 - n  # indices rise within a stream: a gap is a jump
+        self._next_index = last + 1
+        if block.status.any():
+            self.flagged += int(np.count_nonzero(block.status & (STATUS_ENCODER_FAULT | STATUS_CAP_RANGE)))
+        if self.samples == 0:
+            self.first_t_s = float(block.t_host_s[0])
+        self.last_t_s = float(block.t_host_s[-1])
+        self.samples += n
+
+    def new_stream(self) -> None:
+        self._next_index = None
+
+
+class HardwareRig(Rig):
+    """`backend: canopen`: a CiA 402 servo and, optionally, the serial DAQ for the output angle.
+
+    Opened from a rig config's `canopen:`, `hardware:` and `daq:` sections, or on devices given by a
+    backend that builds them, as the virtual one does (`servo` not yet booted, `daq` open). The servo
+    is connected (if it is not) and booted here, the DAQ set to its rate; a failure releases both.
+    """
+
+    source = "hardware"
+
+    def __init__(
+        self,
+        config: RigConfig,
+        *,
+        constants: BenchConstants | None = None,
+        servo: CanopenServo | None = None,
+        daq: SerialDaq | None = None,
+        load: Load | None = None,
+        sample_clock: SampleClock | None = None,
+    ) -> None:
+        super().__init__(config)
+        self.servo = servo if servo is not None else CanopenServo.from_rig_config(config)
+        self.daq = daq
+        try:
+            self.constants = constants or BenchConstants.from_rig_config(
+                config, self.servo.settings.scaling.torque_constant_nm_per_a
+            )
+            if self.servo.network is None:
+                self.servo.connect()
+            if self.daq is None and isinstance(self.constants.daq, DaqSettings):
+                settings = self.constants.daq
+                self.daq = SerialDaq(
+                    settings.url,
+                    baudrate=settings.baudrate,
+                    timeout_s=settings.timeout_s,
+                    clock=time.monotonic,
+                )
+            if self.daq is not None:
+                stream = self.constants.daq or DaqStreamSettings()
+                self.daq.set_rate(stream.rate_hz, samples_per_frame=stream.samples_per_frame)
+                self.daq.calibration()
+            self.servo.boot()
+        except BaseException:
+            self._release()
+            raise
+        self._load = load
+        self._sample_clock = sample_clock
+        self._epoch_s = time.monotonic()
+        self._lim = limits_vector(config.limits, self.constants.gear_ratio)
+        self._pending_error: RigError | None = None
+        self._cycling: threading.Thread | None = None  # the thread inside _run_cycles, if any
+        self._streaming = False
+        self._daq_samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # device time, θ_l, θ_m
+        self._clock_stop = threading.Event()
+        self._clock_thread: threading.Thread | None = None
+        self._holds_heap = False
+        self.cycle_log: CycleLog | None = None
+        self.daq_tally = DaqTally()
+
+    @property
+    def gear_ratio(self) -> float:
+        return self.constants.gear_ratio
+
+    @property
+    def torque_constant_nm_per_a(self) -> float:
+        return self.constants.torque_constant_nm_per_a
+
+    def check_segment(self, segment: Segment) -> None:
+        if segment.mode == ControlMode.VOLTAGE:
+            raise RigError(
+                f"rig {self.config.name!r}: segment {segment.label!r} commands the motor voltage, and a"
+                " CiA 402 drive has no voltage mode: use current, velocity or position"
+            )
+        super().check_segment(segment)
+        if self._load is None and np.any(np.asarray(segment.tau_ext) != 0.0):
+            raise RigError(
+                f"rig {self.config.name!r}: segment {segment.label!r} asks for a load torque τ_ext, and"
+                " this bench has no load actuator: run it with tau_ext 0"
+            )
+
+    def record_raw_to(self, run_dir: Path) -> None:
+        self.servo.record_to(run_dir / RAW_CAN_LOG)
+
+    # --- power ------------------------------------------------------------------------------------
+
+    def _enable(self) -> None:
+        self._pending_error = None
+        if not self._holds_heap:
+            _FROZEN_HEAP.hold()
+            self._holds_heap = True
+        self._start_daq()
+        if self.servo.mode is None:
+            self.servo.configure(ControlMode.VELOCITY)  # holds still until a segment says otherwise
+        self.servo.enable()
+
+    def _disable(self) -> None:
+        try:
+            self.servo.disable()
+        finally:
+            self._stop_daq()
+            self._release_heap()
+        self._raise_pending()
+
+    def _release_heap(self) -> None:
+        if getattr(self, "_holds_heap", False):
+            self._holds_heap = False
+            _FROZEN_HEAP.release()
+
+    def _quick_stop(self) -> None:
+        try:
+            self.servo.quick_stop()
+        except Exception as exc:  # never raises, by contract; the servo's own path already tried NMT STOP
+            logger.error("quick stop: %s", exc)
+        if self._cycling is None or self._cycling is threading.current_thread():
+            # From another thread while cycling, the cycling thread stops the DAQ when it sees the request.
+            try:
+                self._stop_daq()
+            except Exception as exc:
+                logger.warning("quick stop: DAQ not stopped: %s", exc)
+
+    def _faults(self) -> list[str]:
+        faults = self.servo.faults()
+        if self.daq_tally.flagged:
+            faults.append(f"DAQ: {self.daq_tally.flagged} samples with an encoder fault or a clipped θ_l")
+        return faults
+
+    def _close(self) -> None:
+        self._release()
+
+    def _release(self) -> None:
+        """Stop the DAQ's stream and clock thread, close the servo (it quick-stops if powered) and the
+        DAQ; each is tried whatever the others do."""
+        try:
+            if getattr(self, "_streaming", False):
+                self._stop_daq()
+        except Exception as exc:
+            logger.warning("close: DAQ stream not stopped: %s", exc)
+        try:
+            self.servo.close()
+        finally:
+            self._release_heap()
+            if self.daq is not None:
+                self.daq.close()
+
+    # --- the cycle --------------------------------------------------------------------------------
+
+    def _run_cycles(self, mode: ControlMode, setpoint: np.ndarray, tau_ext: np.ndarray) -> tuple[Block, int]:
+        self._raise_pending()
+        self._cycling = threading.current_thread()
+        try:
+            self._enter_mode(mode)
+            rows, t_sync, code = self._cycle_through(setpoint, tau_ext)
+            self._fill_theta_l(rows, t_sync)
+        except (CanopenServoError, DaqError) as exc:
+            self._quick_stop()
+            raise RigError(f"rig {self.config.name!r}: {exc}") from None
+        finally:
+            self._cycling = None
+        if self._pending_error is not None and not len(rows):
+            self._raise_pending()
+        if len(rows):
+            self.t_s = float(rows[-1, _COLUMN["t"]]) + self.period_s
+        return {name: rows[:, i] for i, name in enumerate(SAMPLE_COLUMNS)}, code
+
+    def _enter_mode(self, mode: ControlMode) -> None:
+        """Configure the drive for `mode` if it runs another: disable, remap, enable."""
+        wanted: OperationMode | None = OPERATION_MODE_FOR.get(mode)
+        if wanted is None:
+            raise RigError(f"rig {self.config.name!r}: a CiA 402 drive has no {mode} mode")
+        if self.servo.mode == wanted:
+            return
+        self.servo.disable()
+        self.servo.configure(wanted)
+        self.servo.enable()
+
+    def _cycle_through(self, setpoint: np.ndarray, tau_ext: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """One servo cycle per set-point; rows (θ_l still unset), SYNC host times, abort code."""
+        n = setpoint.shape[0]
+        rows = np.empty((n, len(SAMPLE_COLUMNS)))
+        t_sync = np.empty(n)
+        constants = self.constants
+        current_mode = self.servo.mode == OperationMode.CYCLIC_SYNC_TORQUE
+        position_mode = self.servo.mode == OperationMode.CYCLIC_SYNC_POSITION
+        log = self.cycle_log
+        code = NO_ABORT
+        done = 0
+        for k in range(n):
+            if self._stop_requested.is_set():
+                break
+            target = float(setpoint[k])
+            load = float(tau_ext[k])
+            if self._load is not None:
+                self._load(load)
+            try:
+                feedback = self.servo.cycle(target)
+            except CanopenServoError as exc:  # silent drive, lost bus: stop, keep the rows so far
+                self._defer(f"drive lost: {exc}")
+                break
+            theta_m, omega_m, i_a = feedback.position_rad, feedback.velocity_rad_s, feedback.current_a
+            u = constants.resistance_ohm * i_a + constants.back_emf_v_s_rad * omega_m
+            row = rows[k]
+            row[_COLUMN["t"]] = (
+                self._sample_clock(feedback)
+                if self._sample_clock is not None
+                else feedback.t_s - self._epoch_s
+            )
+            row[_COLUMN["u"]] = u
+            row[_COLUMN["i_cmd"]] = target if current_mode else i_a
+            row[_COLUMN["tau_ext"]] = load
+            row[_COLUMN["theta_m"]] = theta_m
+            row[_COLUMN["omega_m"]] = omega_m
+            row[_COLUMN["i_a"]] = i_a
+            row[_COLUMN["setpoint"]] = target
+            t_sync[k] = feedback.t_s
+            done = k + 1
+            position_error = target - theta_m if position_mode else 0.0
+            code = envelope_breach(self._lim, u, i_a, omega_m, theta_m, position_error)
+            if code == NO_ABORT and self.daq is not None and self._streaming and done < n:
+                # In the period's slack; the chunk's last cycle takes its samples in _fill_theta_l.
+                self._take_daq(self.daq.read_samples(timeout_s=0))
+            if log is not None:
+                log.t_sync_s.append(feedback.t_s)
+                log.latency_s.append(feedback.latency_s)
+                log.t_done_s.append(time.monotonic())
+            if code != NO_ABORT:
+                break
+            if feedback.state != State.OPERATION_ENABLED and not self._stop_requested.is_set():
+                faults = "; ".join(self.servo.faults()) or f"statusword 0x{feedback.statusword:04X}"
+                self._defer(f"drive left OPERATION ENABLED: {feedback.state} ({faults})")
+                break
+        return rows[:done], t_sync[:done], code
+
+    def _defer(self, what: str) -> None:
+        """Stop the drive now; the error ends the segment at the next call, after the rows so far (the
+        DAQ streams on to align them, and stops with the rig's quick stop or close)."""
+        self.servo.quick_stop()
+        self._pending_error = RigError(f"rig {self.config.name!r}: {what}")
+
+    def _raise_pending(self) -> None:
+        error, self._pending_error = self._pending_error, None
+        if error is not None:
+            raise error
+
+    # --- the DAQ ----------------------------------------------------------------------------------
+
+    def _fill_theta_l(self, rows: np.ndarray, t_sync: np.ndarray) -> None:
+        """θ_l of each row: the DAQ's output angle at the row's SYNC time (or r·θ_m without a DAQ).
+
+        Interpolated between the DAQ samples around each SYNC. Paced, the wait for a sample after the
+        chunk's last SYNC ends in time for the next SYNC; rows still beyond the newest sample then
+        (at most EXTRAPOLATE_MAX_PERIODS) are extrapolated along its last two samples, and counted.
+        """
+        if not len(rows):
+            return
+        log = self.cycle_log
+        if self.daq is None:
+            rows[:, _COLUMN["theta_l"]] = self.constants.gear_ratio * rows[:, _COLUMN["theta_m"]]
+            if log is not None:
+                log.daq_theta_m_rad.extend([math.nan] * len(rows))
+            return
+        t_last = float(t_sync[-1])
+        self._merged_daq()  # while the sample after the last SYNC is on its way
+        if self.servo.settings.pace:
+            budget = t_last + self.period_s - ALIGN_MARGIN_S - time.monotonic()
+            try:
+                self._take_daq(self.daq.read_until(t_last, timeout_s=max(0.0, budget)))
+            except DaqError:  # not in yet, or a dead line: take what there is, judge below
+                self._take_daq(self.daq.read_samples(timeout_s=0))
+        else:
+            self._take_daq(self.daq.read_until(t_last))
+        t_device, theta_l, theta_m = self._merged_daq()
+        t_host = self.daq.host_time_s(t_device)  # one clock model for old and new samples alike
+        if not len(t_host) or t_host[-1] < t_last - EXTRAPOLATE_MAX_PERIODS * self.period_s:
+            self._take_daq(self.daq.read_until(t_last))  # too far behind to extrapolate: wait (or fail)
+            t_device, theta_l, theta_m = self._merged_daq()
+            t_host = self.daq.host_time_s(t_device)
+        self.daq_tally.extrapolated += int(np.count_nonzero(t_sync > t_host[-1]))
+        rows[:, _COLUMN["theta_l"]] = _interpolate(t_sync, t_host, theta_l)
+        if log is not None:
+            log.daq_theta_m_rad.extend(_interpolate(t_sync, t_host, theta_m).tolist())
+            log.t_done_s[-1] = time.monotonic()  # the chunk's last cycle waited for the alignment
+        keep = max(0, int(np.searchsorted(t_host, t_last, side="right")) - 1)
+        self._daq_samples = [(t_device[keep:], theta_l[keep:], theta_m[keep:])]
+
+    def _merged_daq(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The samples kept so far as one array each (device time, θ_l, θ_m), kept so."""
+        if not self._daq_samples:
+            return np.empty(0), np.empty(0), np.empty(0)
+        if len(self._daq_samples) > 1:
+            t_device, theta_l, theta_m = (
+                np.concatenate(parts) for parts in zip(*self._daq_samples, strict=True)
+            )
+            self._daq_samples = [(t_device, theta_l, theta_m)]
+        return self._daq_samples[0]
+
+    def _take_daq(self, block: SampleBlock) -> None:
+        self.daq_tally.add(block)
+        if len(block):
+            self._daq_samples.append((block.t_device_s, block.theta_l_rad, block.theta_m_rad))
+            if len(self._daq_samples) >= DAQ_MERGE_PARTS:
+                self._merged_daq()
+
+    def _start_daq(self) -> None:
+        if self.daq is None or self._streaming:
+            return
+        stream = self.constants.daq or DaqStreamSettings()
+        self.daq.estimate_clock_offset(CLOCK_EXCHANGES_AT_START)
+        self.daq.start()
+        self._streaming = True
+        self.daq_tally.new_stream()
+        self._daq_samples = []
+        if stream.clock_every_s > 0:
+            self._clock_stop.clear()
+            self._clock_thread = threading.Thread(
+                target=self._keep_clock, args=(stream.clock_every_s,), name="hdrig daq clock", daemon=True
+            )
+            self._clock_thread.start()
+
+    def _keep_clock(self, every_s: float) -> None:
+        daq = self.daq
+        assert daq is not None
+        while not self._clock_stop.wait(every_s):
+            try:
+                daq.estimate_clock_offset(CLOCK_EXCHANGES_WHILE_STREAMING)
+            except DaqError as exc:  # the cycling thread meets a dead line itself
+                logger.warning("DAQ clock estimate failed: %s", exc)
+
+    def _stop_daq(self) -> None:
+        if self.daq is None or not self._streaming:
+            return
+        self._streaming = False
+        self._clock_stop.set()
+        if self._clock_thread is not None:
+            self._clock_thread.join()
+            self._clock_thread = None
+        self.daq_tally.streams.append(self.daq.stop())
+        self.daq_tally.add(self.daq.read_samples(timeout_s=0))  # the stream's tail: delivered, unused
+        self._daq_samples = []
+
+
+def _interpolate(t: np.ndarray, t_samples: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """`values` at times `t`: linear between samples, along the last two past the newest one."""
+    out = np.interp(t, t_samples, values)
+    beyond = t > t_samples[-1]
+    if np.any(beyond) and len(t_samples) > 1:
+        slope = (values[-1] - values[-2]) / (t_samples[-1] - t_samples[-2])
+        out[beyond] = values[-1] + slope * (t[beyond] - t_samples[-1])
+    return out

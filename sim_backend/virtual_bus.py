@@ -1,0 +1,161 @@
+"""The twins on a virtual CAN bus behind the real drivers: `backend: virtual-can`.
+
+It builds, in this process, the CiA 402 drive twin (`Cia402Twin`, running the rig config's `model:`)
+on a python-can `virtual` channel of its own (the config's `canopen.channel` plus a suffix unique to
+the rig instance, so rigs and tests never share a bus; another interface, a Linux vcan, is used as
+given), and the DAQ board's twin (`DaqTwin`) on a pty,
+measuring that very plant (`PlantStateSource`). On them it opens a `HardwareRig`: the same servo
+driver, DAQ driver, alignment and envelope as on a bench, so a run exercises the real driver code end
+to end.
+
+Time. In virtual time (`pace: virtual`, the default) the servo sends each SYNC as soon as the last
+one is answered (its `canopen.pace` is set from the rig's `pace`), and each SYNC steps the plant one
+cycle; the rows' `t` is the plant's own time of each sample (the twin's, a sim-only convenience: a
+bench has the SYNC's host time), so runs replay exactly. The DAQ twin runs on the wall clock, as a
+board does; in virtual time the loop outpaces it, so θ_l is aligned to within the few cycles that go
+by per DAQ sample. `pace: realtime` holds the 1 ms SYNC grid, and θ_l is then aligned as on a bench.
+
+Load. A segment's τ_ext is set on the twin (`Cia402Twin.tau_ext_nm`) before each cycle's SYNC: a
+sim-only convenience, as no CAN object carries a load torque.
+
+The drive's constants are the model's: gear ratio, resistance and back-EMF for the u estimate, and
+the torque constant (which replaces the `canopen.scaling` one, so that any `model:` runs right).
+`close()` ends every thread: the twin's notifier, heartbeat and watch, the servo's notifier and
+heartbeat, the DAQ twin's device thread, the DAQ driver's reader and the rig's clock thread.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from typing import Literal
+
+from pydantic import Field
+
+from drivers.can_bus import BusSettings, open_bus
+from drivers.canopen_config import CanopenSettings, DriveLimits
+from drivers.canopen_servo import CanopenServo, Feedback
+from drivers.hardware_rig import (
+    BenchConstants,
+    DaqStreamSettings,
+    HardwareConfigError,
+    HardwareRig,
+    daq_section,
+)
+from drivers.serial_daq import SerialDaq
+from model.params import HarmonicDriveModel, load_model
+from rig.config import RigConfig
+from sim_backend.cia402_twin import Cia402Twin
+from sim_backend.daq_twin import DaqTwin, PlantStateSource
+
+
+class DaqTwinSettings(DaqStreamSettings):
+    """The virtual rig's `daq:` section: the stream, and the twin's line and clock (no url: the twin
+    serves a pty of its own)."""
+
+    rate_hz: float = Field(default=2000.0, gt=0, le=20000, description="DAQ sample rate [Hz]")
+    samples_per_frame: int = Field(
+        default=1, ge=1, le=100, description="samples per frame; 1: each sample reads the plant afresh"
+    )
+    transport: Literal["pty", "socket"] = Field(default="pty", description="the twin's line")
+    drift_ppm: float = Field(default=0.0, description="how much faster the twin's clock runs [ppm]")
+
+
+class VirtualCanRig(HardwareRig):
+    """`backend: virtual-can`: a `HardwareRig` on the drive twin and the DAQ twin, in this process."""
+
+    source = "sim"
+
+    def __init__(self, config: RigConfig, model: HarmonicDriveModel | None = None) -> None:
+        self.model: HarmonicDriveModel = model if model is not None else load_model(config.model or "seed")
+        if "hardware" in config.extra:
+            raise HardwareConfigError(
+                f"rig {config.name!r}: the virtual-can backend takes its `hardware:` constants from"
+                " the model: leave the section out"
+            )
+        stream = daq_section(config, DaqTwinSettings) or DaqTwinSettings()
+        assert isinstance(stream, DaqTwinSettings)
+        settings = self._bus_settings(config)
+        motor = self.model.motor
+        constants = BenchConstants(
+            gear_ratio=self.model.mechanics.r,
+            torque_constant_nm_per_a=motor.K_m,
+            resistance_ohm=motor.R,
+            back_emf_v_s_rad=motor.K_b,
+            daq=stream,
+        )
+        self.twin: Cia402Twin | None = None
+        self.daq_twin: DaqTwin | None = None
+        self.plant_log: list[dict[str, float]] | None = None
+        """When a list, the drive twin's own sample of each recorded cycle is appended (true θ_l and the
+        rest, `SAMPLE_COLUMNS`): tests compare what the drivers measured with what the plant did."""
+        servo_daq: SerialDaq | None = None
+        try:
+            bus = BusSettings(
+                interface=settings.interface, channel=settings.channel, bitrate=settings.bitrate
+            )
+            self.twin = Cia402Twin(open_bus(bus), settings.node_id, self.model, config, settings.eds_path())
+            self.daq_twin = DaqTwin.from_sensors(
+                PlantStateSource(self.twin.plant),
+                config.sensors,
+                transport=stream.transport,
+                drift_ppm=stream.drift_ppm,
+            )
+            servo_daq = SerialDaq(self.daq_twin.url, timeout_s=stream.timeout_s, clock=time.monotonic)
+            servo = CanopenServo(settings, DriveLimits.from_rig_config(config), 1.0 / config.sample_rate_hz)
+        except BaseException:
+            if servo_daq is not None:
+                servo_daq.close()
+            self._close_twins()
+            raise
+        try:
+            super().__init__(
+                config,
+                constants=constants,
+                servo=servo,
+                daq=servo_daq,
+                load=self._set_load,
+                sample_clock=self._plant_time,
+            )
+        except BaseException:
+            self._close_twins()  # HardwareRig released the servo and the DAQ driver
+            raise
+
+    def _bus_settings(self, config: RigConfig) -> CanopenSettings:
+        """The `canopen:` section on a channel of this rig's own, paced by the rig, scaled by the model."""
+        settings = CanopenSettings.from_rig_config(config)
+        channel = settings.channel
+        if settings.interface == "virtual":
+            channel = f"{settings.channel}-{uuid.uuid4().hex[:8]}"
+        scaling = settings.scaling.model_copy(update={"torque_constant_nm_per_a": self.model.motor.K_m})
+        return settings.model_copy(
+            update={"channel": channel, "pace": config.pace == "realtime", "scaling": scaling}
+        )
+
+    def _set_load(self, tau_ext_nm: float) -> None:
+        assert self.twin is not None
+        self.twin.tau_ext_nm = tau_ext_nm
+
+    def _plant_time(self, feedback: Feedback) -> float:
+        """The plant time of the sample the drive twin just reported (its last SYNC's row)."""
+        assert self.twin is not None
+        sample = self.twin.last_sample
+        if self.plant_log is not None:
+            self.plant_log.append(dict(sample))
+        return sample["t"]
+
+    def _close(self) -> None:
+        try:
+            super()._close()  # the servo first: it says goodbye to the drive over SDO
+        finally:
+            self._close_twins()
+
+    def _close_twins(self) -> None:
+        daq_twin, twin = self.daq_twin, self.twin
+        self.daq_twin, self.twin = None, None
+        try:
+            if daq_twin is not None:
+                daq_twin.close()
+        finally:
+            if twin is not None:
+                twin.close()
