@@ -136,6 +136,7 @@ def _play(
         model_hash=model.content_hash() if model else None,
         columns=columns,
         meta=meta,
+        background=True,  # the control loop appends; a writer thread takes the disk's time
     )
     rig.record_raw_to(writer.run_dir)
     with writer:

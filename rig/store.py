@@ -22,6 +22,7 @@ import re
 import secrets
 import socket
 import sqlite3
+import threading
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -146,8 +147,9 @@ class RunStore:
         columns: list[str],
         meta: dict[str, Any],
         flush_interval_s: float = 1.0,
+        background: bool = False,
     ) -> RunWriter:
-        """Start a run in the catalog (status `running`) and return its writer."""
+        """Start a run in the catalog (status `running`) and return its writer (see RunWriter)."""
         if "t" not in columns:
             raise ValueError(f"run columns {columns} lack the time column 't'")
         if len(set(columns)) != len(columns):
@@ -181,7 +183,7 @@ class RunStore:
         else:
             raise RuntimeError(f"could not find a free run id for {experiment!r} in {self.catalog_path}")
         self.run_dir(run_id).mkdir()
-        return RunWriter(self, run_id, columns, flush_interval_s)
+        return RunWriter(self, run_id, columns, flush_interval_s, background)
 
     def _seal(self, run_id: str) -> tuple[int, str]:
         """Merge a run's part files into `data.parquet`; return (samples, catalog path)."""
@@ -340,9 +342,21 @@ class RunStore:
 
 class RunWriter:
     """Records one run: buffers appended rows and writes them as a new Parquet part at least every
-    `flush_interval_s` seconds of wall time (checked on `append`). Use from one thread."""
+    `flush_interval_s` seconds of wall time.
 
-    def __init__(self, store: RunStore, run_id: str, columns: list[str], flush_interval_s: float) -> None:
+    By default the check is made on `append`, in the caller's thread. With `background=True` a writer
+    thread does the flushing, so a control loop that appends never waits on the disk (a flush costs a
+    few ms), and rows are flushed on time even when appends pause. Append from one thread.
+    """
+
+    def __init__(
+        self,
+        store: RunStore,
+        run_id: str,
+        columns: list[str],
+        flush_interval_s: float,
+        background: bool = False,
+    ) -> None:
         self.store = store
         self.run_id = run_id
         self.columns = list(columns)
@@ -354,6 +368,19 @@ class RunWriter:
         self._last_t: float | None = None
         self._last_flush_s = monotonic()
         self._next_part = 0
+        self._buffer_lock = threading.Lock()  # the buffer, between appender and writer thread
+        self._write_lock = threading.Lock()  # one flush at a time, so parts are numbered in order
+        self._stop = threading.Event()
+        self._flusher: threading.Thread | None = None
+        if background:
+            self._flusher = threading.Thread(
+                target=self._flush_loop, name=f"run-writer-{run_id}", daemon=True
+            )
+            self._flusher.start()
+
+    def _flush_loop(self) -> None:
+        while not self._stop.wait(self.flush_interval_s):
+            self.flush()
 
     @property
     def run_dir(self) -> Path:
@@ -381,23 +408,26 @@ class RunWriter:
                     f" after t={self._last_t!r}"
                 )
             self._last_t = float(t[-1])
-            self._buffer.append(arrays)
+            with self._buffer_lock:
+                self._buffer.append(arrays)
             self.appended += int(t.size)
-        if monotonic() - self._last_flush_s >= self.flush_interval_s:
+        if self._flusher is None and monotonic() - self._last_flush_s >= self.flush_interval_s:
             self.flush()
 
     def flush(self) -> None:
         """Write the buffered rows as a new part file and update the catalog's sample count."""
-        self._last_flush_s = monotonic()
-        if not self._buffer:
-            return
-        columns = {c: np.concatenate([b[c] for b in self._buffer]) for c in self.columns}
-        write_parquet(columns, {}, self.run_dir / f"part-{self._next_part:06d}.parquet")
-        self._next_part += 1
-        self.samples += len(columns["t"])
-        self._buffer.clear()
-        with self.store._db() as db:
-            db.execute("UPDATE runs SET samples = ? WHERE id = ?", (self.samples, self.run_id))
+        with self._write_lock:
+            with self._buffer_lock:
+                pending, self._buffer = self._buffer, []
+                self._last_flush_s = monotonic()
+            if not pending:
+                return
+            columns = {c: np.concatenate([b[c] for b in pending]) for c in self.columns}
+            write_parquet(columns, {}, self.run_dir / f"part-{self._next_part:06d}.parquet")
+            self._next_part += 1
+            self.samples += len(columns["t"])
+            with self.store._db() as db:
+                db.execute("UPDATE runs SET samples = ? WHERE id = ?", (self.samples, self.run_id))
 
     def finish(
         self, status: str = "complete", reason: str | None = None, metrics: dict[str, Any] | None = None
@@ -409,6 +439,9 @@ class RunWriter:
             raise ValueError(
                 f"run {self.run_id}: finish status must be 'complete' or 'aborted', not {status!r}"
             )
+        if self._flusher is not None:
+            self._stop.set()
+            self._flusher.join()
         self.flush()
         samples, path = self.store._seal(self.run_id)
         with self.store._db() as db:

@@ -8,6 +8,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -217,6 +218,20 @@ def test_append_flushes_once_the_interval_has_passed(
     writer.append(block(10, 10))
     assert store.get(writer.run_id)["samples"] == 20
     assert [p.name for p in writer.run_dir.glob("part-*")] == ["part-000000.parquet"]
+
+
+def test_a_background_writer_flushes_on_time_while_appends_pause(store: RunStore) -> None:
+    writer = store.open_run("speed-sweep", "sim", "seed", "3f2a9c", COLUMNS, dict(META), 0.1, background=True)
+    writer.append(block(0, 10))
+    # No append follows: the writer thread must still put the rows on disk within a few intervals.
+    deadline = time.monotonic() + 5.0
+    while store.get(writer.run_id)["samples"] < 10 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert store.get(writer.run_id)["samples"] == 10
+    writer.append(block(10, 5))
+    writer.finish()
+    assert not [t for t in threading.enumerate() if t.name == f"run-writer-{writer.run_id}"]
+    assert len(store.read(writer.run_id)) == 15
 
 
 # ---- export and artifacts ------------------------------------------------------------------------
