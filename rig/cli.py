@@ -297,8 +297,9 @@ def cmd_runs_export(args: argparse.Namespace) -> int:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from rig.identify import identify, load_runs, save_identified
+    from rig.identify import identify, save_identified
     from rig.progress import ProgressBar
+    from rig.store import load_runs
 
     start = load_model(args.model)
     runs = load_runs(args.data)
@@ -327,16 +328,10 @@ def cmd_gaps(args: argparse.Namespace) -> int:
     from model.gaps import find_gaps
     from model.params import save_model
     from rig.progress import ProgressBar
-    from rig.runfile import READ_SUFFIXES, read_run
-    from rig.store import RunStore
+    from rig.store import load_runs
 
     model = load_model(args.model)
-    runs = []
-    for item in args.data:  # a run file, else a run id in the store
-        path = Path(item)
-        runs.append(
-            read_run(path) if path.exists() or path.suffix.lower() in READ_SUFFIXES else RunStore().read(item)
-        )
+    runs = load_runs(args.data)
     with ProgressBar(enabled=not args.quiet) as bar:
         result = find_gaps(runs, model, report_dir=args.report, progress=bar, model_out=args.out)
     if result.final_model is None and result.steps:
@@ -523,7 +518,11 @@ def build_parser() -> argparse.ArgumentParser:
         " held-out windows by 1.25× with determined parameters).",
     )
     gaps.add_argument(
-        "--data", required=True, nargs="+", metavar="RUN_OR_FILE", help="run ids in the store, or run files"
+        "--data",
+        required=True,
+        nargs="+",
+        metavar="RUN_OR_FILE",
+        help="run ids in the store, run files, or `latest` (the newest complete run of each experiment)",
     )
     gaps.add_argument("--model", required=True, metavar="M", help="preset name or model file")
     gaps.add_argument("--report", metavar="DIR", help="write summary.md, plots and model.yaml into DIR")

@@ -20,8 +20,6 @@ from model.fit.staged import staged_estimates
 from model.fit.trajectory import TrajectoryProblem, fit_trajectories
 from model.params import HarmonicDriveModel, save_model
 from model.run import Run
-from rig.runfile import read_run
-from rig.store import RunStore
 from rig.validation import ValidationReport, validate
 
 JOINT_CANDIDATES = ("s3", "k_v", "static_factor", "K_s", "J_m", "J_l", "f_cl", "b_l", "R", "K_b")
@@ -84,26 +82,6 @@ class Identification:
             "report": str(self.report_file) if self.report_file else None,
             "notes": self.notes,
         }
-
-
-def load_runs(refs: list[str], store: RunStore | None = None) -> list[Run]:
-    """Runs by store id, by file path, or `latest` (newest complete run of each experiment)."""
-    store = store or RunStore()
-    runs: list[Run] = []
-    for ref in refs:
-        if ref == "latest":
-            newest: dict[str, str] = {}
-            for entry in store.list_runs():
-                if entry["status"] == "complete":
-                    newest[entry["experiment"]] = entry["id"]
-            if not newest:
-                raise UserInputError(f"--data latest: no complete run in the store at {store.home}")
-            runs += [store.read(run_id) for run_id in newest.values()]
-        elif Path(ref).suffix in (".csv", ".parquet") or Path(ref).exists():
-            runs.append(read_run(ref))
-        else:
-            runs.append(store.read(ref))
-    return runs
 
 
 def _joint_runs(runs: list[Run]) -> list[Run]:

@@ -35,7 +35,15 @@ import pyarrow.parquet as pq
 
 from model.errors import UserInputError
 from model.run import Run, RunFormatError
-from rig.runfile import json_text, ordered_columns, read_parquet, write_parquet, write_run
+from rig.runfile import (
+    READ_SUFFIXES,
+    json_text,
+    ordered_columns,
+    read_parquet,
+    read_run,
+    write_parquet,
+    write_run,
+)
 
 STATUSES = ("running", "complete", "aborted", "interrupted")
 EXPORT_FORMATS = ("csv", "parquet", "mat")
@@ -480,3 +488,23 @@ class RunWriter:
         else:
             # The rows recorded up to the failure are kept; the exception goes on to the caller.
             self.finish("aborted", reason=str(exc) or type(exc).__name__)
+
+
+def load_runs(refs: list[str], store: RunStore | None = None) -> list[Run]:
+    """Runs by store id, by file path, or `latest` (newest complete run of each experiment)."""
+    store = store or RunStore()
+    runs: list[Run] = []
+    for ref in refs:
+        if ref == "latest":
+            newest: dict[str, str] = {}
+            for entry in store.list_runs():
+                if entry["status"] == "complete":
+                    newest[entry["experiment"]] = entry["id"]
+            if not newest:
+                raise UserInputError(f"--data latest: no complete run in the store at {store.home}")
+            runs += [store.read(run_id) for run_id in newest.values()]
+        elif Path(ref).suffix.lower() in READ_SUFFIXES or Path(ref).exists():
+            runs.append(read_run(ref))
+        else:
+            runs.append(store.read(ref))
+    return runs
