@@ -292,6 +292,9 @@ class HardwareRig(Rig):
         sample_clock: SampleClock | None = None,
     ) -> None:
         super().__init__(config)
+        # Load the compiled envelope check before the bus is up: compiling it on the first cycle would
+        # stall the loop (and the heartbeats of a twin in this process) for up to a second.
+        envelope_breach(limits_vector(config.limits, 1.0), 0.0, 0.0, 0.0, 0.0, 0.0)
         self.servo = servo if servo is not None else CanopenServo.from_rig_config(config)
         self.daq = daq
         try:
