@@ -1,4 +1,4 @@
-# hdrig: `make run` and `make test` work on a fresh machine with only Python 3.11 (README, CONTRACT.md).
+# hdrig: `make run` and `make test` work on a fresh machine with only Python 3.11 (README, docs/INTERFACE.md).
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
 BIN    := $(VENV)/bin

@@ -122,7 +122,7 @@ _CATEGORY = {
 
 
 def term_effect(term: str, channel: str) -> str | None:
-    """The vocabulary effect a library term stands for (MODEL.md's signature column); None if mixed."""
+    """The vocabulary effect a library term stands for (docs/MODEL.md's signature column); None if mixed."""
     tokens = TOKEN.findall(term)
     kinds = set()
     for token in tokens:

@@ -6,7 +6,7 @@ Prints tables, asserts nothing. What it measures:
    preset at dt = 1e-4 s under u = 2·sin(2π·0.5·t) V, output decimated to 1 kHz. The first call in a
    fresh process is timed apart, twice: with an empty numba cache (a cold compile) and with the cache
    on disk (`cache=True`). The steady rate is the best of several repeated runs.
-2. The same input through `solve_ivp` on a plain-Python right-hand side of MODEL.md with the seed's
+2. The same input through `solve_ivp` on a plain-Python right-hand side of docs/MODEL.md with the seed's
    parameters. Static friction cannot be written as a function of the state alone, so the ODE uses
    the usual regularization: friction magnitude × tanh(ω/ε), ε = the preset's stick band. Because
    solve_ivp is slow, it runs over a shorter horizon; its rate is given as equivalent steps per second
@@ -156,7 +156,7 @@ class OdeStalledError(Exception):
 
 
 class ArticleRhs:
-    """dy/dt of MODEL.md for y = (θ_m, ω_m, θ_l, ω_l): plain Python floats and `math`, seed sections only.
+    """dy/dt of docs/MODEL.md for y = (θ_m, ω_m, θ_l, ω_l): plain floats and `math`, seed sections only.
 
     friction = "tanh": F = magnitude·tanh(ω/ε) with ε the preset's stick band (ε_m on the motor, ε_l on
     the load), smooth, no static level (static_factor and f_sl are dropped: at ω = 0 friction is zero).

@@ -1,6 +1,6 @@
 """Input profiles (step, sine, ramp, chirp, pulse train, velocity staircase) and their text specs.
 
-A spec is `KIND:key=value,key=value`, e.g. `sine:amp=2,freq=0.5` (CONTRACT.md). Every profile is a
+A spec is `KIND:key=value,key=value`, e.g. `sine:amp=2,freq=0.5` (docs/INTERFACE.md). Every profile is a
 function of time returning the input value (V, A, N·m or a set-point, depending on who uses it).
 """
 

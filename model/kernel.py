@@ -1,8 +1,8 @@
-"""The compiled inner loop: fixed-step integration of the MODEL.md plant with Karnopp stick-slip.
+"""The compiled inner loop: fixed-step integration of the docs/MODEL.md plant with Karnopp stick-slip.
 
 Scheme: semi-implicit (symplectic) Euler. Each step computes every torque from the state at the start
 of the step, updates the velocities, then the positions with the new velocities. Stick-slip follows
-Karnopp: inside a small velocity band the stuck branch of MODEL.md applies and the velocity is held at
+Karnopp: inside a small velocity band the stuck branch of docs/MODEL.md applies and the velocity is held at
 exactly zero while |ψ| ≤ f_s; a moving body whose velocity would change sign in one step is stopped at
 zero instead, so every reversal passes through stick and friction never reverses the motion it opposes.
 LuGre and Dahl are smooth laws: their bristle state is advanced with the exact solution of its linear
@@ -71,7 +71,7 @@ def _sign(x: float) -> float:
 
 @njit(cache=True)
 def position_coulomb(p: np.ndarray, n_harmonics: int, theta_m: float) -> tuple[float, float]:
-    """C(θ_m) and P(θ_m) of MODEL.md; the harmonics by angle-addition recurrence (two trig calls)."""
+    """C(θ_m) and P(θ_m) of docs/MODEL.md; the harmonics by angle-addition recurrence (two trig calls)."""
     c = (p[S1] * theta_m + p[S2]) * theta_m + p[S3]
     periodic = 0.5 * p[FOURIER_A]
     if n_harmonics > 0:

@@ -1,6 +1,6 @@
-"""Model parameters: validated pydantic models with the symbol names of MODEL.md and units in each field.
+"""Model parameters: validated pydantic models with the symbol names of docs/MODEL.md and units in each field.
 
-A model file is YAML or JSON with the sections below. Sections named after an effect of the MODEL.md
+A model file is YAML or JSON with the sections below. Sections named after an effect of the docs/MODEL.md
 vocabulary (`kinematic_error`, `nonlinear_stiffness`, `stribeck`, ...) are optional: absent means the
 effect is not in the model. Every leaf name is unique in a file, so `K_s` means one thing everywhere.
 """
@@ -92,7 +92,7 @@ def _check_law_fields(
 
 
 class MotorFriction(Section):
-    """Motor-side friction F_m. `article`: the position-dependent model of MODEL.md; others: baselines."""
+    """Motor-side friction F_m. `article`: the position-dependent law of docs/MODEL.md; others: baselines."""
 
     motor_law: MotorLaw = Field(default="article", description="friction law on the motor side")
     s1: Finite | None = Field(default=None, description="quadratic coefficient of C(θ_m) [N·m/rad²]")
@@ -148,7 +148,7 @@ class MotorFriction(Section):
 
 
 class LoadFriction(Section):
-    """Load-side friction F_l (MODEL.md effect `load_side_friction`)."""
+    """Load-side friction F_l (docs/MODEL.md effect `load_side_friction`)."""
 
     load_law: LoadLaw = Field(default="coulomb_viscous", description="friction law on the load side")
     f_cl: NonNegative | None = Field(default=None, description="load-side Coulomb friction [N·m]")
@@ -259,7 +259,7 @@ EFFECT_SECTIONS = (
 
 
 class HarmonicDriveModel(BaseModel):
-    """The two-inertia flexible joint with DC motor and friction of MODEL.md, one object for every use."""
+    """The two-inertia flexible joint with DC motor and friction of docs/MODEL.md, one object for all uses."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 

@@ -1,4 +1,4 @@
-"""A run in memory: the one table format for measured, simulated and imported data (CONTRACT.md).
+"""A run in memory: the one table format for measured, simulated and imported data (docs/INTERFACE.md).
 
 Columns are SI-unit numpy arrays of equal length, one row per sample. Files (Parquet, CSV) are read
 and written by `rig.runfile`; this module knows nothing of files.
@@ -28,7 +28,7 @@ KNOWN_COLUMNS = {
     "omega_l": "rad/s",
     "i_a": "A",
 }
-"""The CONTRACT.md columns and their units. Runs may carry further columns."""
+"""The docs/INTERFACE.md columns and their units. Runs may carry further columns."""
 
 
 class RunFormatError(UserInputError):
@@ -37,7 +37,7 @@ class RunFormatError(UserInputError):
 
 @dataclass
 class Run:
-    """One run: named columns of equal length plus metadata (CONTRACT.md keys and free extras)."""
+    """One run: named columns of equal length plus metadata (docs/INTERFACE.md keys and free extras)."""
 
     columns: dict[str, np.ndarray]
     meta: dict[str, Any] = field(default_factory=dict)

@@ -1,4 +1,4 @@
-"""The `hdrig` command line (CONTRACT.md). A thin shell: each command parses, calls the core, prints.
+"""The `hdrig` command line (docs/INTERFACE.md). A thin shell: each command parses, calls the core, prints.
 
 Errors a user can cause end as one line on stderr and exit status 2; anything else is a bug and
 keeps its traceback. `--json` output is one JSON document on stdout; logs and progress go to stderr.
@@ -358,7 +358,7 @@ importing the experiments (and matplotlib with them) would slow every command's 
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with CONTRACT.md's one-line errors (exit status 2), instead of usage plus error."""
+    """argparse with docs/INTERFACE.md's one-line errors (exit status 2), instead of usage plus error."""
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"hdrig: error: {message} (see {self.prog} --help)\n")

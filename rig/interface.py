@@ -231,7 +231,7 @@ class Rig(ABC):
         """Motor torque per ampere, to turn measured current into torque [N·m/A]."""
 
     source: str = "hardware"
-    """What CONTRACT.md's `source` metadata says of this rig's runs: `sim` or `hardware`."""
+    """What docs/INTERFACE.md's `source` metadata says of this rig's runs: `sim` or `hardware`."""
 
     model: HarmonicDriveModel | None = None
     """The model a simulated rig runs (None on hardware): recorded with each run."""

@@ -1,6 +1,6 @@
 """Run files: read and write a `Run` as Parquet, CSV (+ `<file>.json` metadata) or MATLAB `.mat`.
 
-The format is CONTRACT.md's run format. Every write goes to a temporary name and is renamed into
+The format is docs/INTERFACE.md's run format. Every write goes to a temporary name and is renamed into
 place, so a reader never sees a half-written file.
 """
 
@@ -36,7 +36,7 @@ class RunFileError(UserInputError):
 
 
 def ordered_columns(names: Iterable[str]) -> list[str]:
-    """CONTRACT.md columns first, in their table order, then any further columns as given."""
+    """docs/INTERFACE.md columns first, in their table order, then any further columns as given."""
     given = list(names)
     return [c for c in KNOWN_COLUMNS if c in given] + [c for c in given if c not in KNOWN_COLUMNS]
 

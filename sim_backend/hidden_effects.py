@@ -223,7 +223,7 @@ HIDDEN: dict[str, tuple[bool, bool, Edit, Edit]] = {
         lambda m, s: merge_sections(m, load_friction=None),
     ),
 }
-"""Every vocabulary effect of MODEL.md that the simulator produces, as a (truth, model) recipe."""
+"""Every vocabulary effect of docs/MODEL.md that the simulator produces, as a (truth, model) recipe."""
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Independent reference formulas from MODEL.md, written out apart from the kernel, and model variants."""
+"""Independent reference formulas from docs/MODEL.md, written apart from the kernel, and model variants."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def variant(model: HarmonicDriveModel, **changes: Any) -> HarmonicDriveModel:
 
 
 def article_friction(model: HarmonicDriveModel, theta: np.ndarray, omega: np.ndarray) -> np.ndarray:
-    """MODEL.md moving branch: sgn(ω)·[C(θ)·(1 + k_v(|ω| − v_c)) + P(θ)] + b_m·ω."""
+    """docs/MODEL.md moving branch: sgn(ω)·[C(θ)·(1 + k_v(|ω| − v_c)) + P(θ)] + b_m·ω."""
     f = model.motor_friction
     assert f.s1 is not None and f.s2 is not None and f.s3 is not None and f.k_v is not None
     assert f.v_c is not None
@@ -43,7 +43,7 @@ def article_friction(model: HarmonicDriveModel, theta: np.ndarray, omega: np.nda
 
 
 def article_static(model: HarmonicDriveModel, theta: np.ndarray) -> np.ndarray:
-    """MODEL.md f_sm = static_factor·[C(θ)·(1 − k_v·v_c) + P(θ)]: the moving magnitude at |ω| → 0+."""
+    """docs/MODEL.md f_sm = static_factor·[C(θ)·(1 − k_v·v_c) + P(θ)]: the moving magnitude at |ω| → 0+."""
     factor = model.motor_friction.static_factor
     assert factor is not None
     return factor * article_friction(model, theta, np.full_like(np.asarray(theta, dtype=float), 1e-300))

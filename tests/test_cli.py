@@ -1,4 +1,4 @@
-"""The `hdrig` command line as CONTRACT.md gives it, run as a user runs it (a separate process)."""
+"""The `hdrig` command line as docs/INTERFACE.md gives it, run as a user runs it (a separate process)."""
 
 from __future__ import annotations
 

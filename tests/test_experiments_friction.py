@@ -1,5 +1,5 @@
 """The friction experiments (speed sweep, position friction, load variation, pulses) on the simulated rig,
-checked against the seed model's own equations (MODEL.md), with every tolerance derived below.
+checked against the seed model's own equations (docs/MODEL.md), with every tolerance derived below.
 
 Where the steady-friction formula applies. At constant motor speed the drive's torque K_m·i_a balances
 F_m(θ, ω) + r·F_l + r·τ_ext only while the load moves steadily with the motor. The seed has two things
@@ -107,7 +107,7 @@ def inertia_rigid(model: HarmonicDriveModel) -> float:
 
 
 def load_friction_at_motor(model: HarmonicDriveModel, omega_m: float) -> float:
-    """r·F_l for a steadily moving load at ω_l = r·ω_m (MODEL.md load side) [N·m]."""
+    """r·F_l for a steadily moving load at ω_l = r·ω_m (docs/MODEL.md load side) [N·m]."""
     lf, r = model.load_friction, model.mechanics.r
     assert lf is not None and lf.f_cl is not None
     return r * (lf.f_cl * math.copysign(1.0, omega_m) + lf.b_l * r * omega_m)

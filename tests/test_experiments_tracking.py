@@ -1,7 +1,7 @@
 """The closed-loop validation experiments (`step`, `sine`, `ramp`, `chirp`) on the simulated rig.
 
 Each experiment runs once per module on the `sim` rig; the tests recompute what they check from the
-stored run with code of their own, or against the linear two-inertia model of MODEL.md.
+stored run with code of their own, or against the linear two-inertia model of docs/MODEL.md.
 """
 
 from __future__ import annotations
@@ -157,7 +157,7 @@ def test_ramp_finds_no_stick_phases_without_friction(store: RunStore, seed: Harm
 
 
 def _sampled_two_inertia_speed_frf(model: HarmonicDriveModel, freq_hz: np.ndarray) -> np.ndarray:
-    """i_cmd → measured ω_m of the linear two-inertia model of MODEL.md, as the drive samples it.
+    """i_cmd → measured ω_m of the linear two-inertia model of docs/MODEL.md, as the drive samples it.
 
     The plant K_m/(s·(J_m + r²·J_l·K_s/(J_l·s² + K_s))) in state space, its command held over each
     cycle (exact zero-order-hold discretization), then the drive's speed: encoder difference over one

@@ -1,4 +1,4 @@
-"""The simulator against the equations of MODEL.md: friction, stick-slip, energy, linear case, limits."""
+"""The simulator against the equations of docs/MODEL.md: friction, stick-slip, energy, linear case, limits."""
 
 from __future__ import annotations
 
@@ -154,7 +154,7 @@ def _linear_state_space(model: HarmonicDriveModel) -> signal.StateSpace:
     K_m, K_b, R = model.motor.K_m, model.motor.K_b, model.motor.R
     K_s, D_s = model.transmission.K_s, model.transmission.D_s
     assert K_s is not None
-    # x = [θ_m, ω_m, θ_l, ω_l]; u = voltage. MODEL.md with no friction and no kinematic error.
+    # x = [θ_m, ω_m, θ_l, ω_l]; u = voltage. docs/MODEL.md with no friction and no kinematic error.
     a = np.array(
         [
             [0, 1, 0, 0],

@@ -1,6 +1,6 @@
 """Model parameters by name, for fitting: read and replace leaf values of a model file.
 
-A parameter name is a MODEL.md symbol (`s3`, `K_s`, `f_cl`...), unique in a model file, or an element
+A parameter name is a docs/MODEL.md symbol (`s3`, `K_s`, `f_cl`...), unique in a model file, or an element
 of the Fourier vectors written `a0`..`a10`, `b1`..`b10`. Replacing values goes through the model's
 validation, so a fit can never produce a model file that does not load.
 """

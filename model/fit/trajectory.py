@@ -33,7 +33,7 @@ CHANNELS = {"theta_m": k.OUT_THETA_M, "theta_l": k.OUT_THETA_L}
 """Positions only: a drive's speed is a filtered encoder difference, which the true speed of the model
 would be compared to with a lag and a bias; positions are only quantized and noisy."""
 SIGNED = re.compile(r"s1|s2|a\d+|b\d+|k_v|phi|f_dir|d_th")
-"""Parameters that may take either sign; every other parameter of MODEL.md is positive."""
+"""Parameters that may take either sign; every other parameter of docs/MODEL.md is positive."""
 
 
 @dataclass

@@ -1,9 +1,9 @@
 """The model-gap workflow (issue 6): find where simulation and measurement disagree, name the missing
-effect from the MODEL.md vocabulary, add it, show the gap shrink.
+effect from the docs/MODEL.md vocabulary, add it, show the gap shrink.
 
     from model.gaps import find_gaps
     result = find_gaps([run], model, report_dir="gaps-report")
-    result.to_json()  # CONTRACT.md's `hdrig gaps --json` document
+    result.to_json()  # docs/INTERFACE.md's `hdrig gaps --json` document
 """
 
 from model.gaps.shooting import METRIC

@@ -565,7 +565,7 @@ SCREENS: dict[str, Callable[[Context], Candidate | None]] = {
     "load_side_friction": screen_load_side,
     "thermal_drift": screen_thermal,
 }
-"""Every effect of the MODEL.md vocabulary, by name, with its screen."""
+"""Every effect of the docs/MODEL.md vocabulary, by name, with its screen."""
 
 
 def screen(ctx: Context, skip: set[str]) -> list[Candidate]:

@@ -83,7 +83,7 @@ class GapStep:
 
 @dataclass
 class GapsResult:
-    """What the workflow found; `to_json()` is CONTRACT.md's document, the rest feeds the report."""
+    """What the workflow found; `to_json()` is docs/INTERFACE.md's document, the rest feeds the report."""
 
     metric: str
     initial_gap: float
@@ -98,7 +98,7 @@ class GapsResult:
     report: list[Path] = field(default_factory=list)
 
     def to_json(self) -> dict[str, Any]:
-        """CONTRACT.md's `hdrig gaps --json` document."""
+        """docs/INTERFACE.md's `hdrig gaps --json` document."""
         return {
             "metric": self.metric,
             "initial_gap": self.initial_gap,

@@ -1,6 +1,6 @@
 """`load-variation`: the speed sweep repeated under several external load torques τ_ext at the output.
 
-At constant speed MODEL.md gives T_m = F_m + r·(τ_ext + F_l): the motor carries the load through the
+At constant speed docs/MODEL.md gives T_m = F_m + r·(τ_ext + F_l): the motor carries the load through the
 gear as well as friction. The friction part is therefore K_m·i_a − r·τ_ext. With friction that does not
 depend on the transmitted torque it is the same at every load; a level growing with |τ_ext| is the
 signature of `load_dependent_friction` (c_Ts·|T_s| on the motor, T_s ≈ τ_ext at the output).

@@ -4,7 +4,7 @@ At constant speed the motor's torque K_m·i_a balances the friction seen from th
 Passing the stroke forward then backward at one speed, `cycles` times, gives two things:
 
 - friction against position on a grid over the stroke (bins of one motor turn by default, so the
-  periodic part averages out): the slow level C(θ_m) of MODEL.md, per direction;
+  periodic part averages out): the slow level C(θ_m) of docs/MODEL.md, per direction;
 - friction against motor angle modulo one turn: the periodic part P(θ_m), and its Fourier
   coefficients a_n, b_n from one least-squares fit of `c0 + c1·θ + c2·θ² + Σ a_n cos nθ + b_n sin nθ`
   to the friction magnitude sgn(ω)·K_m·i_a of every steady sample (the quadratic gives s1..s3).
