@@ -50,6 +50,7 @@ from drivers.cia402 import (
 from drivers.pdo_layout import od_variable
 from model.errors import UserInputError
 from rig.config import RigConfig
+from rig.faults import DeviceFault
 from rig.interface import ControlMode
 
 logger = logging.getLogger(__name__)
@@ -72,8 +73,13 @@ STANDSTILL_RAD_S: Final = 0.5
 """Below this motor speed an orderly stop removes power."""
 
 
-class CanopenServoError(UserInputError):
-    """The drive refused, faulted or went silent; one line naming what and where."""
+class DriveSettingError(UserInputError):
+    """The drive refused what the rig file asks of it (an SDO write or read aborted, a mode it has not);
+    one line naming the node, the object and the drive's abort code."""
+
+
+class CanopenServoError(DeviceFault):
+    """The drive failed while working: it faulted, went silent, or did not reach a state or mode."""
 
 
 class SyncTimeoutError(CanopenServoError):
@@ -155,7 +161,7 @@ class CanopenServo:
     def connect(self, bus: can.BusABC | None = None, log_path: Path | None = None) -> None:
         """Open the bus (or use `bus`), start the raw traffic log at `log_path` (.blf/.asc), if given."""
         if self.network is not None:
-            raise CanopenServoError(f"node {self.settings.node_id}: already connected")
+            raise RuntimeError(f"node {self.settings.node_id}: already connected")
         network = RecordedNetwork(bus if bus is not None else open_bus(self.settings))
         network.recorder.record_to(log_path)
         network.connect()
@@ -174,12 +180,12 @@ class CanopenServo:
         network, node = self._connected()
         if self.settings.reset_on_boot:
             self._booted.clear()
-            node.nmt.send_command(NMT_RESET_NODE)
+            self._nmt(NMT_RESET_NODE)
             if not self._booted.wait(self.settings.boot_timeout_s):
                 timeout = self.settings.boot_timeout_s
                 raise CanopenServoError(f"node {node.id}: no boot-up message within {timeout} s of NMT reset")
         else:
-            node.nmt.send_command(NMT_PRE_OPERATIONAL)
+            self._nmt(NMT_PRE_OPERATIONAL)
         if self._heartbeat is None:
             # From a thread of this process: if it hangs or dies, the drive's consumer stops the drive.
             period_s = self.settings.host_heartbeat_ms / 1000.0
@@ -198,8 +204,8 @@ class CanopenServo:
         _network, node = self._connected()
         op_mode = _operation_mode(mode)
         if self._last is not None and self._last.state == State.OPERATION_ENABLED:
-            raise CanopenServoError(f"node {node.id}: disable the drive before switching to {op_mode.name}")
-        node.nmt.send_command(NMT_PRE_OPERATIONAL)
+            raise RuntimeError(f"node {node.id}: disable the drive before switching to {op_mode.name}")
+        self._nmt(NMT_PRE_OPERATIONAL)
         self._started_t_s = None
         self._write(mode_plan(self.od, self.settings.node_id, op_mode))
         tpdo1, tpdo2 = self._tpdo
@@ -392,9 +398,12 @@ class CanopenServo:
         payload = plan.rpdo.encode((controlword, target_raw))
         with self._rx:
             before = list(self._tpdo_counts)
-        network.send_message(plan.rpdo_cob_id, payload)
-        t_sync = time.monotonic()
-        network.send_message(SYNC_COB_ID, b"")
+        try:
+            network.send_message(plan.rpdo_cob_id, payload)
+            t_sync = time.monotonic()
+            network.send_message(SYNC_COB_ID, b"")
+        except can.CanError as exc:  # the bus failed under a working drive: a fault, not a setting
+            raise CanopenServoError(f"node {self.settings.node_id}: cycle not sent: {exc}") from exc
         with self._rx:
             answered = self._rx.wait_for(
                 lambda: all(c > b for c, b in zip(self._tpdo_counts, before, strict=True)),
@@ -532,21 +541,28 @@ class CanopenServo:
                 )
 
     def _start_node(self) -> None:
-        _network, node = self._connected()
-        node.nmt.send_command(NMT_START)
+        self._nmt(NMT_START)
         self._started_t_s = time.monotonic()
+
+    def _nmt(self, command: int) -> None:
+        _network, node = self._connected()
+        try:
+            node.nmt.send_command(command)
+        except can.CanError as exc:
+            raise CanopenServoError(f"node {node.id}: NMT command 0x{command:02X} not sent: {exc}") from exc
 
     def _operational(self) -> bool:
         return self._drive_nmt_state == NMT_OPERATIONAL_STATE
 
     def _read(self, index: int, subindex: int) -> int:
         _network, node = self._connected()
+        where = f"node {node.id}: SDO read of 0x{index:04X}:{subindex:02X}"
         try:
             data = node.sdo.upload(index, subindex)
-        except (SdoAbortedError, SdoCommunicationError) as exc:
-            raise CanopenServoError(
-                f"node {node.id}: SDO read of 0x{index:04X}:{subindex:02X} failed: {exc}"
-            ) from None
+        except SdoAbortedError as exc:  # the drive has not what its EDS, or the rig file, says it has
+            raise DriveSettingError(f"{where} refused: {exc}") from None
+        except (SdoCommunicationError, can.CanError) as exc:
+            raise CanopenServoError(f"{where} failed: {exc}") from exc
         return int(od_variable(self.od, index, subindex).decode_raw(data))
 
     def _write(self, plan: list[SdoWrite]) -> None:
@@ -554,34 +570,36 @@ class CanopenServo:
         for write in plan:
             try:
                 node.sdo.download(write.index, write.subindex, write.data(self.od))
-            except (SdoAbortedError, SdoCommunicationError) as exc:
-                raise CanopenServoError(f"node {node.id}: SDO write {write} refused: {exc}") from None
+            except SdoAbortedError as exc:  # a value of the rig file the drive cannot take
+                raise DriveSettingError(f"node {node.id}: SDO write {write} refused: {exc}") from None
+            except (SdoCommunicationError, can.CanError) as exc:
+                raise CanopenServoError(f"node {node.id}: SDO write {write} failed: {exc}") from exc
 
     def _connected(self) -> tuple[RecordedNetwork, canopen.RemoteNode]:
         if self.network is None or self.node is None:
-            raise CanopenServoError(f"node {self.settings.node_id}: not connected: call connect() first")
+            raise RuntimeError(f"node {self.settings.node_id}: not connected: call connect() first")
         return self.network, self.node
 
     def _plan_or_raise(self) -> PdoPlan:
         if self._plan is None:
-            raise CanopenServoError(f"node {self.settings.node_id}: no mode set: call configure() first")
+            raise RuntimeError(f"node {self.settings.node_id}: no mode set: call configure() first")
         return self._plan
 
     def _scaling(self) -> Scaling:
         if self.scaling is None:
-            raise CanopenServoError(f"node {self.settings.node_id}: not booted: call boot() first")
+            raise RuntimeError(f"node {self.settings.node_id}: not booted: call boot() first")
         return self.scaling
 
 
 def _operation_mode(mode: OperationMode | ControlMode) -> OperationMode:
     if isinstance(mode, OperationMode):
         if mode == OperationMode.NO_MODE:
-            raise CanopenServoError("configure: NO_MODE is not a mode to run in")
+            raise DriveSettingError("configure: NO_MODE is not a mode to run in")
         return mode
     try:
         return OPERATION_MODE_FOR[mode]
     except KeyError:
-        raise CanopenServoError(f"configure: a CiA 402 drive has no {mode} mode") from None
+        raise DriveSettingError(f"configure: a CiA 402 drive has no {mode} mode") from None
 
 
 def _clamp(value: int, bounds: tuple[int, int]) -> int:

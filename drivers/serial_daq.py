@@ -10,8 +10,10 @@ A reader thread drains the port from open to close, whatever the caller's cadenc
 buffer for a tty is small (a pty holds ~20 kB, 0.2 s of a 10 kHz stream), and a board whose host does
 not read drops frames. Callers wait on what it has decoded; any thread may call any method.
 
-Errors from the line (no reply, an ERR reply, a port that will not open or fails) raise `DaqError`,
-one line naming the port and the command.
+Errors name the port and the command in one line. What the user can fix is a `DaqConfigError`: a port
+that will not open, a setting the board refuses as a bad argument (`ERR 2`, e.g. a rate whose period is
+not a whole number of µs). A board or line that fails while working is a `DaqError`, a device fault: no
+reply, a reply that makes no sense, any other refusal, a stream that stops, a port that fails.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import serial
 from numpy.typing import ArrayLike
 
 from drivers.daq_protocol import (
+    ERR_BAD_ARGUMENT,
     MAX_TAG,
     DataFrame,
     DecoderStats,
@@ -38,6 +41,7 @@ from drivers.daq_protocol import (
     command_line,
 )
 from model.errors import UserInputError
+from rig.faults import DeviceFault
 
 DEFAULT_BAUDRATE = 921_600
 POLL_S = 0.0005
@@ -49,8 +53,12 @@ DRIFT_MIN_SPAN_S = 10.0
 """Clock estimates must span this much device time before a drift is fitted (50 µs over 10 s: 5 ppm)."""
 
 
-class DaqError(UserInputError):
-    """The DAQ board or its line failed; the message names the port and the command."""
+class DaqConfigError(UserInputError):
+    """The port does not open, or the board refuses a setting as a bad argument; names port and command."""
+
+
+class DaqError(DeviceFault):
+    """The DAQ board or its line failed while working; the message names the port and the command."""
 
 
 class SerialPort(Protocol):
@@ -180,7 +188,7 @@ class SerialDaq:
             try:
                 port = serial.serial_for_url(url, baudrate=baudrate, timeout=0)
             except (OSError, ValueError) as exc:
-                raise DaqError(f"DAQ on {url}: cannot open the port: {exc}") from None
+                raise DaqConfigError(f"DAQ on {url}: cannot open the port: {exc}") from None
         else:
             port.timeout = 0
         self._port = port
@@ -292,7 +300,10 @@ class SerialDaq:
             return replace(self.decoder.stats)
 
     def command(self, command: str) -> str:
-        """Send one command line; return its reply after `OK`. DaqError on ERR or no reply."""
+        """Send one command line; return its reply after `OK`.
+
+        DaqConfigError when the board refuses an argument (ERR 2); DaqError on another ERR or no reply.
+        """
         return self._exchange(command)[0]
 
     # --- samples ------------------------------------------------------------------------------------------
@@ -366,7 +377,8 @@ class SerialDaq:
         if word == "OK":
             return rest, arrival_s
         if word == "ERR":
-            raise DaqError(f"DAQ on {self.url}: {command!r} refused: {reply.text}")
+            refused = DaqConfigError if rest.split(" ", 1)[0] == str(ERR_BAD_ARGUMENT) else DaqError
+            raise refused(f"DAQ on {self.url}: {command!r} refused: {reply.text}")
         raise DaqError(f"DAQ on {self.url}: {command!r} got {reply.text!r}, neither OK nor ERR")
 
     def _read(self, short: Callable[[], bool], timeout_s: float | None, what: str) -> SampleBlock:

@@ -22,6 +22,7 @@ import numpy as np
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RigConfig
+from rig.faults import DeviceFault
 from rig.safety import ABORT_REASONS, NO_ABORT
 
 
@@ -42,7 +43,13 @@ commanded (both always present: a drive knows both), `setpoint` the segment's se
 
 
 class RigError(UserInputError):
-    """A command the rig refuses (out of its limits, rig not enabled...)."""
+    """A command the rig refuses before anything moves: a set-point beyond its limits, a mode or a load
+    it has not, an unknown backend. The user can fix it in the experiment or the rig file."""
+
+
+class RigFault(DeviceFault):
+    """The bench failed during a segment (a drive fault, a silent drive or DAQ); the rig has quick-stopped
+    and the rows up to the fault have reached the sink."""
 
 
 @dataclass(frozen=True)
@@ -141,10 +148,14 @@ class Rig(ABC):
 
         A breach of the envelope quick-stops the rig and returns the reason in `aborted` (the samples
         up to and including the breaching one have already reached the sink). `quick_stop()` from
-        another thread ends the segment the same way.
+        another thread ends the segment the same way, and so does one that came before the segment
+        (between two segments, or an earlier abort): nothing moves until `enable()`. A device fault
+        (`DeviceFault`) quick-stops the rig, is kept as its last abort, and is raised.
         """
-        if not self._enabled:
-            raise RigError(f"rig {self.config.name!r} is not enabled: call enable() first")
+        if self._stop_requested.is_set():
+            return self._abort(SegmentResult(0, "aborted: quick stop requested"))
+        if not self._enabled:  # never enabled: the caller's bug, neither bad input nor a device fault
+            raise RuntimeError(f"rig {self.config.name!r} is not enabled: call enable() first")
         self.check_segment(segment)
         tau = np.broadcast_to(np.asarray(segment.tau_ext, dtype=np.float64), (segment.cycles,))
         chunk = max(1, round(chunk_s / self.period_s))
@@ -153,9 +164,13 @@ class Rig(ABC):
             if self._stop_requested.is_set():
                 return self._abort(SegmentResult(done, "aborted: quick stop requested"))
             n = min(chunk, segment.cycles - done)
-            block, code = self._run_cycles(
-                segment.mode, segment.setpoint[done : done + n], tau[done : done + n]
-            )
+            try:
+                block, code = self._run_cycles(
+                    segment.mode, segment.setpoint[done : done + n], tau[done : done + n]
+                )
+            except DeviceFault as fault:
+                self._abort(SegmentResult(done, f"aborted: {fault}"))
+                raise
             got = len(block["t"])
             done += got
             if got:

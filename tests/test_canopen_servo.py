@@ -24,10 +24,12 @@ import yaml
 
 from drivers.can_bus import BusSettings, TrafficRecorder, bus_settings_for_test, open_bus
 from drivers.canopen_config import CanopenConfigError, boot_plan
-from drivers.canopen_servo import CanopenServo, CanopenServoError, DriveFaultError, SyncTimeoutError
+from drivers.canopen_servo import CanopenServo, DriveFaultError, DriveSettingError, SyncTimeoutError
 from drivers.cia402 import OperationMode, State
+from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig
+from rig.faults import DeviceFault
 from rig.interface import ControlMode
 from sim_backend.cia402_twin import Cia402Twin
 
@@ -270,15 +272,17 @@ def test_pv_ramps_at_the_profile_acceleration(bench: Bench) -> None:
     assert arrived.statusword & 0x0400  # target reached
 
 
-def test_configure_is_refused_while_enabled(bench: Bench) -> None:
+def test_configure_while_enabled_is_a_bug_of_the_caller(bench: Bench) -> None:
     bench.enabled_in(OperationMode.CYCLIC_SYNC_VELOCITY)
-    with pytest.raises(CanopenServoError, match="disable the drive"):
+    with pytest.raises(RuntimeError, match="disable the drive") as info:
         bench.servo.configure(OperationMode.CYCLIC_SYNC_TORQUE)
+    assert not isinstance(info.value, DeviceFault | UserInputError)  # neither the drive nor the user
 
 
-def test_a_voltage_mode_is_refused(bench: Bench) -> None:
-    with pytest.raises(CanopenServoError, match="no voltage mode"):
+def test_a_voltage_mode_is_refused_as_bad_input(bench: Bench) -> None:
+    with pytest.raises(DriveSettingError, match="no voltage mode") as info:
         bench.servo.configure(ControlMode.VOLTAGE)
+    assert isinstance(info.value, UserInputError) and not isinstance(info.value, DeviceFault)
 
 
 # --- faults, stops, silence -----------------------------------------------------------------------
@@ -306,8 +310,9 @@ def test_overcurrent_faults_the_drive_with_its_emcy(make_bench: BenchFactory) ->
 def test_enable_refuses_a_faulted_drive(bench: Bench) -> None:
     bench.enabled_in(OperationMode.CYCLIC_SYNC_POSITION)
     bench.servo.cycle(200.0)
-    with pytest.raises(DriveFaultError, match="EMCY 0x8611"):
+    with pytest.raises(DriveFaultError, match="EMCY 0x8611") as info:
         bench.servo.enable()
+    assert isinstance(info.value, DeviceFault) and not isinstance(info.value, UserInputError)
 
 
 def test_reset_fault_brings_the_drive_back(bench: Bench) -> None:
@@ -367,8 +372,9 @@ def test_a_silent_drive_times_out_and_is_reported(make_bench: BenchFactory) -> N
     bench = make_bench(drive_heartbeat_ms=20, drive_heartbeat_timeout_ms=60)
     bench.enabled_in(OperationMode.CYCLIC_SYNC_VELOCITY)
     bench.twin.close()
-    with pytest.raises(SyncTimeoutError):
+    with pytest.raises(SyncTimeoutError) as info:
         bench.servo.cycle(0.0)
+    assert isinstance(info.value, DeviceFault) and not isinstance(info.value, UserInputError)
     time.sleep(0.08)
     assert any(f.startswith("drive heartbeat lost") for f in bench.servo.faults())
 

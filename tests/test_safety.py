@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 import yaml
 
+from model.errors import UserInputError
 from rig.config import RIG_DIR, RigConfig
+from rig.faults import DeviceFault
 from rig.interface import Block, ControlMode, Rig, RigError, Segment, SegmentResult, open_rig
 from sim_backend.inprocess import SimRig
 
@@ -142,11 +144,29 @@ def test_no_motion_after_an_abort_until_enabled_again() -> None:
     config, segment, _, _ = travel_case()
     with open_rig(config) as rig:
         play(rig, segment)
-        with pytest.raises(RigError, match="not enabled"):
-            rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(10)), Recorder())
+        sink = Recorder()
+        after = rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(10)), sink)
+        assert after == SegmentResult(0, "aborted: quick stop requested") and sink.blocks == []
         rig.enable()  # clears the quick stop; the travel is still breached, so holding still aborts again
         result = rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(10), label="hold"), Recorder())
         assert result.cycles == 1 and result.aborted and result.aborted.startswith("aborted: travel limit")
+
+
+def test_a_segment_on_a_rig_never_enabled_is_a_bug_of_the_caller() -> None:
+    with open_rig(sim_config()) as rig, pytest.raises(RuntimeError, match="not enabled") as info:
+        rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(10)), Recorder())
+    assert not isinstance(info.value, DeviceFault | UserInputError)
+
+
+def test_a_quick_stop_between_two_segments_ends_the_next_one_before_it_moves() -> None:
+    with open_rig(sim_config()) as rig:
+        assert isinstance(rig, SimRig)
+        rig.enable()
+        rig.quick_stop()  # e.g. from another thread, while the caller was between segments
+        state = rig.plant.x.copy()
+        result = rig.run_segment(Segment(ControlMode.VELOCITY, np.full(10, 5.0), label="next"), Recorder())
+        assert result == SegmentResult(0, "aborted: quick stop requested")
+        np.testing.assert_array_equal(rig.plant.x, state)
 
 
 # ---- quick stop --------------------------------------------------------------------------------------
@@ -233,7 +253,6 @@ def test_a_trip_while_settling_ends_the_run_aborted_with_its_reason(tmp_path: An
 
 
 def test_a_program_beyond_the_rig_is_refused_before_anything_moves(tmp_path: Any) -> None:
-    from model.errors import UserInputError
     from rig.runner import run_experiment
     from rig.store import RunStore
 

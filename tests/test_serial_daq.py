@@ -29,10 +29,12 @@ from drivers.daq_protocol import (
     encode_data_frame,
     encode_reply_frame,
 )
-from drivers.serial_daq import ClockEstimate, ClockModel, DaqError, SerialDaq
+from drivers.serial_daq import ClockEstimate, ClockModel, DaqConfigError, DaqError, SerialDaq
+from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from model.plant import Plant
 from rig.config import Sensors
+from rig.faults import DeviceFault
 from sim_backend.daq_twin import DaqTwin, SteppedPlantSource
 
 needs_pty = pytest.mark.skipif(not hasattr(os, "openpty"), reason="no pseudo-terminals on this platform")
@@ -258,16 +260,26 @@ def test_commands_go_out_as_tagged_lines_and_replies_are_matched_by_tag() -> Non
         daq.zero_encoder()
 
 
-def test_an_err_reply_raises_daq_error_naming_the_port_and_the_command() -> None:
+def test_a_bad_argument_refused_is_bad_input_naming_the_port_and_the_command() -> None:
     daq = scripted((b"#1 RATE 1500\n", reply(1, "ERR 2 rate 1500 Hz: must be ...")))
-    with pytest.raises(DaqError, match=r"^DAQ on scripted: 'RATE 1500' refused: ERR 2 rate 1500 Hz"):
+    with pytest.raises(
+        DaqConfigError, match=r"^DAQ on scripted: 'RATE 1500' refused: ERR 2 rate 1500 Hz"
+    ) as info:
         daq.set_rate(1500)
+    assert isinstance(info.value, UserInputError) and not isinstance(info.value, DeviceFault)
 
 
-def test_no_reply_raises_daq_error_naming_the_port_the_command_and_the_wait() -> None:
-    daq = scripted((b"#1 ID?\n", b""), timeout_s=0.05)
-    with pytest.raises(DaqError, match=r"^DAQ on scripted: no reply to 'ID\?' within 0.05 s$"):
+def test_another_refusal_is_a_device_fault() -> None:
+    daq = scripted((b"#1 ID?\n", reply(1, "ERR 1 unknown command")))
+    with pytest.raises(DaqError, match=r"^DAQ on scripted: 'ID\?' refused: ERR 1 unknown command$"):
         daq.identify()
+
+
+def test_no_reply_is_a_device_fault_naming_the_port_the_command_and_the_wait() -> None:
+    daq = scripted((b"#1 ID?\n", b""), timeout_s=0.05)
+    with pytest.raises(DaqError, match=r"^DAQ on scripted: no reply to 'ID\?' within 0.05 s$") as info:
+        daq.identify()
+    assert isinstance(info.value, DeviceFault) and not isinstance(info.value, UserInputError)
 
 
 def test_a_late_reply_to_an_earlier_command_is_not_taken_for_the_current_one() -> None:
@@ -285,9 +297,10 @@ def test_unexpected_reply_text_raises_daq_error() -> None:
         daq.device_time_s()
 
 
-def test_opening_a_missing_port_raises_daq_error_naming_it() -> None:
-    with pytest.raises(DaqError, match=r"^DAQ on /dev/no-such-daq: cannot open the port"):
+def test_a_serial_url_that_does_not_open_is_bad_input_naming_it() -> None:
+    with pytest.raises(DaqConfigError, match=r"^DAQ on /dev/no-such-daq: cannot open the port") as info:
         SerialDaq("/dev/no-such-daq")
+    assert isinstance(info.value, UserInputError) and not isinstance(info.value, DeviceFault)
 
 
 def test_a_port_that_fails_while_reading_raises_daq_error_naming_it() -> None:
@@ -495,7 +508,7 @@ def test_configuration_is_refused_while_streaming() -> None:
 @needs_pty
 def test_a_rate_without_a_whole_number_of_microseconds_is_refused() -> None:
     with DaqTwin(wave) as twin, SerialDaq(twin.url) as daq:
-        with pytest.raises(DaqError, match="ERR 2 rate 3000 Hz"):
+        with pytest.raises(DaqConfigError, match="ERR 2 rate 3000 Hz"):
             daq.set_rate(3000)
         daq.set_rate(2500)  # 400 µs: accepted
 

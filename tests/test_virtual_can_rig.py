@@ -27,9 +27,11 @@ import yaml
 from drivers.can_bus import bus_settings_for_test, open_bus
 from drivers.canopen_config import CanopenSettings
 from drivers.hardware_rig import RAW_CAN_LOG, BenchConstants, CycleLog, HardwareConfigError
+from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig, load_rig_config
-from rig.interface import ControlMode, Rig, RigError, Segment, open_rig
+from rig.faults import DeviceFault
+from rig.interface import ControlMode, Rig, RigError, RigFault, Segment, open_rig
 from rig.runner import run_experiment
 from rig.store import RunStore
 from sim_backend.cia402_twin import Cia402Twin
@@ -306,7 +308,18 @@ def test_a_drive_fault_the_host_does_not_see_ends_the_segment_after_its_rows(
     rig = make_bench_rig({"velocity_rad_s": 50.0})  # the drive trips at 50 rad/s, the host at 700
     rig.enable()
     blocks: list[dict[str, np.ndarray]] = []
-    with pytest.raises(RigError, match=r"drive left OPERATION ENABLED: FAULT \(EMCY 0x8400"):
+    with pytest.raises(RigFault, match=r"drive left OPERATION ENABLED: FAULT \(EMCY 0x8400"):
         rig.run_segment(Segment(ControlMode.VELOCITY, np.full(500, 100.0)), blocks.append)
     speeds = np.concatenate([b["omega_m"] for b in blocks])
     assert speeds[-1] > 50.0 and np.all(speeds[:-1] <= 50.0)  # every row up to the tripping one
+
+
+def test_a_drive_emcy_mid_segment_is_a_device_fault_not_bad_input(make_bench_rig: BenchRigFactory) -> None:
+    rig = make_bench_rig({"velocity_rad_s": 50.0})
+    rig.enable()
+    with pytest.raises(DeviceFault, match="EMCY 0x8400") as info:
+        rig.run_segment(Segment(ControlMode.VELOCITY, np.full(500, 100.0)), lambda block: None)
+    health = rig.health()
+    assert not isinstance(info.value, UserInputError)
+    # The rig quick-stopped and keeps the fault as its last abort, for the run to end `aborted: <fault>`.
+    assert not health.enabled and health.last_abort == f"aborted: {info.value}"
