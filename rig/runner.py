@@ -3,12 +3,14 @@
 Flow: open the rig named by the config → enable → a short settle segment to read where the motor is →
 the experiment's program, segment by segment, each block of samples appended to the store as it comes
 (flushed at least once a second) → on a breach the run is finished `aborted: <reason>` with its data →
-otherwise `complete`, then the analysis writes tables, plots and metrics beside the run.
+otherwise `complete`, then the analysis writes tables, plots and metrics beside the run. A device fault
+(`rig.faults.DeviceFault`) mid-run quick-stops the rig and ends the run `aborted: <fault>`, data kept.
+
+The application core (`rig.core`) calls this for the command line and the service alike.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,15 +22,28 @@ from pydantic import ValidationError
 
 from model.errors import UserInputError, describe_validation_error
 from rig.config import RigConfig
-from rig.experiments import CAMPAIGN_ORDER, EXPERIMENTS
+from rig.experiments import CAMPAIGN_ORDER, experiment_named
 from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext
-from rig.interface import SAMPLE_COLUMNS, ControlMode, Rig, Segment, open_rig
+from rig.faults import DeviceFault
+from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, open_rig
 from rig.runfile import json_text
-from rig.store import RunStore
+from rig.status import RunStatus
+from rig.store import RunStore, RunWriter
 
 SETTLE_S = 0.2
 Progress = Callable[[str, float], None]
 """Called with a label (experiment or segment) and the fraction of the whole job done, 0..1."""
+
+
+@dataclass(frozen=True)
+class RunHooks:
+    """What a caller may watch while a run records (the rig worker's events). Each is called on the
+    control loop's thread and must return at once."""
+
+    on_start: Callable[[str], None] | None = None  # the run's id, once it is in the catalog
+    on_block: Callable[[str, Block], None] | None = None  # each block of samples as it is recorded
+    on_segment: Callable[[str, Segment], None] | None = None  # each segment as it begins
+    run_id: str | None = None  # an id reserved beforehand (the service's queued runs)
 
 
 @dataclass
@@ -37,11 +52,12 @@ class RunOutcome:
 
     run_id: str
     experiment: str
-    status: str
+    status: RunStatus
     reason: str | None = None
     metrics: dict[str, Any] = field(default_factory=dict)
     artifacts: list[Path] = field(default_factory=list)
     run_dir: Path | None = None
+    fault: str | None = None  # the device fault that ended it, if one did
 
 
 def parse_overrides(experiment: str, pairs: Sequence[str]) -> dict[str, Any]:
@@ -96,24 +112,28 @@ def run_experiment(
     store: RunStore | None = None,
     progress: Progress | None = None,
     rig: Rig | None = None,
+    hooks: RunHooks | None = None,
 ) -> RunOutcome:
     """Run one experiment on the rig `config` names (or on `rig`), store it, analyze it."""
-    if name not in EXPERIMENTS:
-        raise UserInputError(f"unknown experiment {name!r} (experiments: {', '.join(EXPERIMENTS)}, campaign)")
-    experiment = EXPERIMENTS[name]
+    experiment = experiment_named(name)
     params = make_params(experiment, overrides or {})
     store = store or RunStore()
     own_rig = rig is None
     rig = rig or open_rig(config)
     try:
-        return _play(experiment, params, rig, store, progress)
+        return _play(experiment, params, rig, store, progress, hooks or RunHooks())
     finally:
         if own_rig:
             rig.close()
 
 
 def _play(
-    experiment: Experiment, params: ExperimentParams, rig: Rig, store: RunStore, progress: Progress | None
+    experiment: Experiment,
+    params: ExperimentParams,
+    rig: Rig,
+    store: RunStore,
+    progress: Progress | None,
+    hooks: RunHooks,
 ) -> RunOutcome:
     config = rig.config
     rig.enable()
@@ -137,42 +157,34 @@ def _play(
         columns=columns,
         meta=meta,
         background=True,  # the control loop appends; a writer thread takes the disk's time
+        run_id=hooks.run_id,
     )
+    if hooks.on_start is not None:
+        hooks.on_start(writer.run_id)
+    sink = writer.append
+    if hooks.on_block is not None:
+        tap, run_id = hooks.on_block, writer.run_id
+
+        def sink(block: Block) -> None:
+            writer.append(block)
+            tap(run_id, block)
+
     rig.record_raw_to(writer.run_dir)
     with writer:
-        theta_m0, aborted = _settle(rig, writer.append)
-        if aborted is not None:
-            writer.finish("aborted", reason=aborted)
-            return RunOutcome(writer.run_id, experiment.name, "aborted", aborted, run_dir=writer.run_dir)
-        ctx = RigContext(config, rig.gear_ratio, rig.torque_constant_nm_per_a, theta_m0)
-        program = experiment.program(params, ctx)
-        labels = [seg.label for seg in program]
-        if len(set(labels)) != len(labels):
-            raise ValueError(f"experiment {experiment.name}: segment labels must be unique, got {labels}")
-        for seg in program:
-            rig.check_segment(seg)  # refuse the whole program before any of it moves the motor
-        start = writer.appended
-        segments = []
-        for seg in program:
-            segments.append({"label": seg.label, "mode": str(seg.mode), "start": start, "cycles": seg.cycles})
-            start += seg.cycles
-        input_column = "u" if all(seg.mode == ControlMode.VOLTAGE for seg in program) else "i_cmd"
-        writer.update_meta({"segments": segments, "input_column": input_column, "theta_m0": theta_m0})
-        total = sum(seg.cycles for seg in program)
-        done = 0
-        for seg in program:
-            report = None
-            if progress is not None:
-                report = _segment_progress(progress, experiment.name, seg, done, total)
-            result = rig.run_segment(seg, writer.append, report)
-            done += seg.cycles
-            if result.aborted is not None:
-                writer.finish("aborted", reason=result.aborted)
-                return RunOutcome(
-                    writer.run_id, experiment.name, "aborted", result.aborted, run_dir=writer.run_dir
-                )
+        fault = None
+        try:
+            reason, ctx = _record(experiment, params, rig, writer, sink, progress, hooks)
+        except DeviceFault as exc:
+            rig.quick_stop()  # first the motor, then the bookkeeping
+            fault = str(exc)
+            reason = f"aborted: {fault}"
+        if reason is not None:
+            writer.finish(RunStatus.ABORTED, reason=reason)
+            return RunOutcome(
+                writer.run_id, experiment.name, RunStatus.ABORTED, reason, run_dir=writer.run_dir, fault=fault
+            )
         rig.disable()
-        writer.finish("complete")
+        writer.finish(RunStatus.COMPLETE)
     run = store.read(writer.run_id)
     results = experiment.analyze(run, params, ctx)
     artifacts = _save_results(store, writer.run_id, results)
@@ -181,8 +193,51 @@ def _play(
     artifacts += experiment.plot(run, results, params, ctx, plot_dir)
     store.set_metrics(writer.run_id, results.metrics)
     return RunOutcome(
-        writer.run_id, experiment.name, "complete", None, results.metrics, artifacts, run_dir=writer.run_dir
+        writer.run_id, experiment.name, RunStatus.COMPLETE, None, results.metrics, artifacts, writer.run_dir
     )
+
+
+def _record(
+    experiment: Experiment,
+    params: ExperimentParams,
+    rig: Rig,
+    writer: RunWriter,
+    sink: Callable[[Block], None],
+    progress: Progress | None,
+    hooks: RunHooks,
+) -> tuple[str | None, RigContext]:
+    """Settle, then play the program; (abort reason or None, the rig context the program ran in)."""
+    config = rig.config
+    theta_m0, aborted = _settle(rig, sink)
+    ctx = RigContext(config, rig.gear_ratio, rig.torque_constant_nm_per_a, theta_m0)
+    if aborted is not None:
+        return aborted, ctx
+    program = experiment.program(params, ctx)
+    labels = [seg.label for seg in program]
+    if len(set(labels)) != len(labels):
+        raise ValueError(f"experiment {experiment.name}: segment labels must be unique, got {labels}")
+    for seg in program:
+        rig.check_segment(seg)  # refuse the whole program before any of it moves the motor
+    start = writer.appended
+    segments = []
+    for seg in program:
+        segments.append({"label": seg.label, "mode": str(seg.mode), "start": start, "cycles": seg.cycles})
+        start += seg.cycles
+    input_column = "u" if all(seg.mode == ControlMode.VOLTAGE for seg in program) else "i_cmd"
+    writer.update_meta({"segments": segments, "input_column": input_column, "theta_m0": theta_m0})
+    total = sum(seg.cycles for seg in program)
+    done = 0
+    for seg in program:
+        report = None
+        if progress is not None:
+            report = _segment_progress(progress, experiment.name, seg, done, total)
+        if hooks.on_segment is not None:
+            hooks.on_segment(writer.run_id, seg)
+        result = rig.run_segment(seg, sink, report)
+        done += seg.cycles
+        if result.aborted is not None:
+            return result.aborted, ctx
+    return None, ctx
 
 
 def _segment_progress(
@@ -202,6 +257,8 @@ def run_campaign(
     experiments: Sequence[str] = CAMPAIGN_ORDER,
     on_outcome: Callable[[RunOutcome], None] | None = None,
     keep_going: bool = False,
+    rig: Rig | None = None,
+    hooks: RunHooks | None = None,
 ) -> list[RunOutcome]:
     """Every experiment in turn, each on a fresh rig from rest, each its own run.
 
@@ -214,11 +271,11 @@ def run_campaign(
         report = None
         if progress is not None:
             report = _campaign_progress(progress, index, len(experiments))
-        outcome = run_experiment(name, config, (overrides or {}).get(name), store, report)
+        outcome = run_experiment(name, config, (overrides or {}).get(name), store, report, rig, hooks)
         outcomes.append(outcome)
         if on_outcome is not None:
             on_outcome(outcome)
-        if outcome.status == "aborted" and not keep_going:
+        if outcome.status == RunStatus.ABORTED and not keep_going:
             break
     return outcomes
 
@@ -228,20 +285,3 @@ def _campaign_progress(progress: Progress, index: int, count: int) -> Progress:
         progress(label, (index + fraction) / count)
 
     return report
-
-
-def outcome_json(outcome: RunOutcome) -> dict[str, Any]:
-    data: dict[str, Any] = json.loads(
-        json_text(
-            {
-                "id": outcome.run_id,
-                "experiment": outcome.experiment,
-                "status": outcome.status,
-                "reason": outcome.reason,
-                "metrics": outcome.metrics,
-                "run_dir": str(outcome.run_dir) if outcome.run_dir else None,
-                "artifacts": [str(p) for p in outcome.artifacts],
-            }
-        )
-    )
-    return data

@@ -44,8 +44,10 @@ from rig.runfile import (
     write_parquet,
     write_run,
 )
+from rig.status import RunStatus
 
-STATUSES = ("running", "complete", "aborted", "interrupted")
+STORED_STATUSES = (RunStatus.RUNNING, RunStatus.COMPLETE, RunStatus.ABORTED, RunStatus.INTERRUPTED)
+"""The statuses a run in the catalog can have (`queued` and `failed` runs never reached the store)."""
 EXPORT_FORMATS = ("csv", "parquet", "mat")
 DATA_FILE = "data.parquet"
 ARTIFACTS_DIR = "artifacts"
@@ -58,7 +60,7 @@ CREATE TABLE IF NOT EXISTS runs (
     rig         TEXT NOT NULL,
     model_name  TEXT,
     model_hash  TEXT,
-    status      TEXT NOT NULL CHECK (status IN ('running', 'complete', 'aborted', 'interrupted')),
+    status      TEXT NOT NULL CHECK (status IN (STATUSES)),
     reason      TEXT,
     started     TEXT NOT NULL,
     ended       TEXT,
@@ -71,7 +73,7 @@ CREATE TABLE IF NOT EXISTS runs (
     pid_started TEXT
 );
 CREATE INDEX IF NOT EXISTS runs_started ON runs (started);
-"""
+""".replace("STATUSES", ", ".join(f"'{s}'" for s in STORED_STATUSES))
 
 
 class UnknownRunError(UserInputError):
@@ -86,6 +88,12 @@ def default_home() -> Path:
 
 def _utc(moment: datetime | None = None) -> str:
     return (moment or datetime.now(UTC)).isoformat(timespec="milliseconds")
+
+
+def new_run_id(experiment: str, moment: datetime | None = None) -> str:
+    """A fresh run id: UTC time, the experiment, a random suffix (`20261121-080824-speed-sweep-7173`)."""
+    slug = re.sub(r"[^a-z0-9]+", "-", experiment.lower()).strip("-")[:40] or "run"
+    return f"{(moment or datetime.now(UTC)):%Y%m%d-%H%M%S}-{slug}-{secrets.token_hex(2)}"
 
 
 def _process_start(pid: int) -> tuple[str, str] | None:
@@ -156,21 +164,24 @@ class RunStore:
         meta: dict[str, Any],
         flush_interval_s: float = 1.0,
         background: bool = False,
+        run_id: str | None = None,
     ) -> RunWriter:
-        """Start a run in the catalog (status `running`) and return its writer (see RunWriter)."""
+        """Start a run in the catalog (status `running`) and return its writer (see RunWriter).
+
+        `run_id`: an id from `new_run_id`, reserved by a caller that had to name the run before it began.
+        """
         if "t" not in columns:
             raise ValueError(f"run columns {columns} lack the time column 't'")
         if len(set(columns)) != len(columns):
             raise ValueError(f"run columns {columns} name a column twice")
         now = datetime.now(UTC)
-        slug = re.sub(r"[^a-z0-9]+", "-", experiment.lower()).strip("-")[:40] or "run"
         stat = _process_start(os.getpid())
         row: dict[str, Any] = {
             "experiment": experiment,
             "rig": rig,
             "model_name": model_name,
             "model_hash": model_hash,
-            "status": "running",
+            "status": RunStatus.RUNNING.value,
             "started": _utc(now),
             "meta": json_text(meta),
             "pid": os.getpid(),
@@ -178,8 +189,8 @@ class RunStore:
             "pid_started": stat[1] if stat else None,
         }
         for _ in range(10):
-            run_id = f"{now:%Y%m%d-%H%M%S}-{slug}-{secrets.token_hex(2)}"
-            row.update(id=run_id, path=f"runs/{run_id}")
+            chosen = run_id or new_run_id(experiment, now)
+            row.update(id=chosen, path=f"runs/{chosen}")
             try:
                 with self._db() as db:
                     db.execute(
@@ -187,9 +198,12 @@ class RunStore:
                     )
                 break
             except sqlite3.IntegrityError:
-                continue  # the random suffix collided within the same second: draw another
+                if run_id is not None:
+                    raise ValueError(f"run id {run_id!r} is already in {self.catalog_path}") from None
+                # the random suffix collided within the same second: draw another
         else:
             raise RuntimeError(f"could not find a free run id for {experiment!r} in {self.catalog_path}")
+        run_id = chosen
         self.run_dir(run_id).mkdir()
         return RunWriter(self, run_id, columns, flush_interval_s, background)
 
@@ -224,12 +238,15 @@ class RunStore:
         """Mark `running` runs whose writer process has died as `interrupted`; True if any changed."""
         changed = False
         for row in rows:
-            if row["status"] != "running" or _process_alive(row["pid"], row["host"], row["pid_started"]):
+            if row["status"] != RunStatus.RUNNING or _process_alive(
+                row["pid"], row["host"], row["pid_started"]
+            ):
                 continue
             with self._db() as db:
                 # Only the lister whose update lands seals the run, so two listers never seal it together.
                 claimed = db.execute(
-                    "UPDATE runs SET status = 'interrupted' WHERE id = ? AND status = 'running'", (row["id"],)
+                    "UPDATE runs SET status = ? WHERE id = ? AND status = ?",
+                    (RunStatus.INTERRUPTED.value, row["id"], RunStatus.RUNNING.value),
                 ).rowcount
             if not claimed:
                 continue
@@ -438,12 +455,15 @@ class RunWriter:
                 db.execute("UPDATE runs SET samples = ? WHERE id = ?", (self.samples, self.run_id))
 
     def finish(
-        self, status: str = "complete", reason: str | None = None, metrics: dict[str, Any] | None = None
+        self,
+        status: RunStatus = RunStatus.COMPLETE,
+        reason: str | None = None,
+        metrics: dict[str, Any] | None = None,
     ) -> None:
         """Flush, seal the data into one Parquet file and record the final status (`complete`/`aborted`)."""
         if self.closed:
             raise RuntimeError(f"run {self.run_id} is already finished")
-        if status not in ("complete", "aborted"):
+        if status not in (RunStatus.COMPLETE, RunStatus.ABORTED):
             raise ValueError(
                 f"run {self.run_id}: finish status must be 'complete' or 'aborted', not {status!r}"
             )
@@ -457,7 +477,7 @@ class RunWriter:
                 "UPDATE runs SET status = ?, reason = ?, ended = ?, samples = ?, path = ?,"
                 " metrics = COALESCE(?, metrics) WHERE id = ?",
                 (
-                    status,
+                    RunStatus(status).value,
                     reason,
                     _utc(),
                     samples,
@@ -484,10 +504,10 @@ class RunWriter:
         if self.closed:
             return
         if exc is None:
-            self.finish("complete")
+            self.finish(RunStatus.COMPLETE)
         else:
             # The rows recorded up to the failure are kept; the exception goes on to the caller.
-            self.finish("aborted", reason=str(exc) or type(exc).__name__)
+            self.finish(RunStatus.ABORTED, reason=f"aborted: {str(exc) or type(exc).__name__}")
 
 
 def load_runs(refs: list[str], store: RunStore | None = None) -> list[Run]:
@@ -498,7 +518,7 @@ def load_runs(refs: list[str], store: RunStore | None = None) -> list[Run]:
         if ref == "latest":
             newest: dict[str, str] = {}
             for entry in store.list_runs():
-                if entry["status"] == "complete":
+                if entry["status"] == RunStatus.COMPLETE:
                     newest[entry["experiment"]] = entry["id"]
             if not newest:
                 raise UserInputError(f"--data latest: no complete run in the store at {store.home}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from model.errors import UserInputError
 from rig.experiments.base import Experiment
 from rig.experiments.chirp import Chirp
 from rig.experiments.load_variation import LoadVariation
@@ -16,3 +17,15 @@ EXPERIMENTS: dict[str, Experiment] = {
 }
 
 CAMPAIGN_ORDER: tuple[str, ...] = tuple(EXPERIMENTS)
+
+CAMPAIGN = "campaign"
+"""The name that runs every experiment in CAMPAIGN_ORDER, each its own run."""
+
+
+def experiment_named(name: str) -> Experiment:
+    """The experiment called `name`; an unknown name is a one-line error listing the known ones."""
+    try:
+        return EXPERIMENTS[name]
+    except KeyError:
+        known = ", ".join([*EXPERIMENTS, CAMPAIGN])
+        raise UserInputError(f"unknown experiment {name!r} (experiments: {known})") from None

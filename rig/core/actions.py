@@ -1,0 +1,331 @@
+"""What a user can do with hdrig, one function per action, for the command line and the service alike.
+
+Each takes validated inputs and returns a document (`rig.core.documents`); neither the CLI nor the
+service adds logic of its own. Bad input raises `model.errors.UserInputError` (one line); a device
+fault ends the run `aborted: <fault>`; anything else is a bug and propagates.
+
+Where fit and gaps write: each analysis has its own folder in the store, `$HDRIG_HOME/analyses/<id>/`,
+holding `result.json` (the document) and the model it produced as `model.yaml`; `out=` writes the
+model to that file instead, `report_dir=` writes the report (plots, tables, summary) into that folder
+(the service always asks for one, inside the analysis folder).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from model.errors import UserInputError
+from model.params import load_model, preset_names
+from model.run import Run
+from rig.config import RigConfig
+from rig.core.documents import (
+    ExperimentInfo,
+    FitDocument,
+    FitError,
+    FitParameter,
+    GapsDocument,
+    GapStepDocument,
+    ModelSummary,
+    PlannedRun,
+    RunDocument,
+    RunPlan,
+)
+from rig.experiments import CAMPAIGN, CAMPAIGN_ORDER, EXPERIMENTS, experiment_named
+from rig.faults import DeviceFault
+from rig.interface import Rig
+from rig.runfile import json_text
+from rig.runner import Progress, RunHooks, RunOutcome, make_params, run_experiment
+from rig.status import RunStatus
+from rig.store import ARTIFACTS_DIR, RunStore, load_runs, new_run_id
+
+ANALYSES_DIR = "analyses"
+RESULT_FILE = "result.json"
+MODEL_FILE = "model.yaml"
+
+
+# ---- models and experiments ---------------------------------------------------------------------
+
+
+def list_models() -> list[ModelSummary]:
+    """The presets in configs/models."""
+    out = []
+    for name in preset_names():
+        model = load_model(name)
+        out.append(ModelSummary(name=name, effects=list(model.effects), description=model.description))
+    return out
+
+
+def show_model(name_or_file: str) -> dict[str, Any]:
+    """A model as a model file's content: every parameter by its docs/MODEL.md name."""
+    return load_model(name_or_file).to_dict()
+
+
+def list_experiments() -> list[ExperimentInfo]:
+    """Each experiment with the JSON Schema of its parameters."""
+    return [
+        ExperimentInfo(name=e.name, summary=e.summary, params_schema=e.Params.model_json_schema())
+        for e in EXPERIMENTS.values()
+    ]
+
+
+# ---- planning and running -----------------------------------------------------------------------
+
+
+def plan_run(experiment: str, params: dict[str, Any] | None = None, keep_going: bool = False) -> RunPlan:
+    """Validate a start request before the rig is touched.
+
+    One experiment takes its parameters (`{"hold_s": 0.5}`); the campaign takes them per experiment
+    (`{"speed-sweep": {"hold_s": 0.5}}`). Unknown experiments and bad values are one-line errors.
+    """
+    given = dict(params or {})
+    if experiment == CAMPAIGN:
+        unknown = sorted(set(given) - set(CAMPAIGN_ORDER))
+        if unknown:
+            raise UserInputError(
+                f"run campaign: params.{unknown[0]} is not an experiment (one of {', '.join(CAMPAIGN_ORDER)})"
+            )
+        names: Sequence[str] = CAMPAIGN_ORDER
+    else:
+        experiment_named(experiment)
+        names, given = [experiment], {experiment: given}
+    runs = []
+    for name in names:
+        values = given.get(name) or {}
+        if not isinstance(values, dict):
+            raise UserInputError(f"run campaign: params.{name} must be an object of parameters")
+        checked = make_params(EXPERIMENTS[name], values)
+        runs.append(PlannedRun(experiment=name, params=checked.model_dump(mode="json")))
+    return RunPlan(experiment=experiment, runs=runs, keep_going=keep_going)
+
+
+def params_from_pairs(experiment: str, pairs: Sequence[str]) -> dict[str, Any]:
+    """The command line's `--set key=value` pairs as `plan_run` params; values are YAML scalars or lists.
+
+    A single experiment takes `key=value`; the campaign takes `experiment.key=value`.
+    """
+    params: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        if not sep or not key.strip():
+            raise UserInputError(f"run {experiment}: --set {pair!r} is not key=value")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise UserInputError(f"run {experiment}: --set {pair!r}: the value is not YAML") from None
+        key = key.strip()
+        if experiment != CAMPAIGN:
+            params[key] = value
+            continue
+        name, dot, field = key.partition(".")
+        if not dot or name not in CAMPAIGN_ORDER:
+            raise UserInputError(
+                f"run campaign: --set {pair!r} must be EXPERIMENT.key=value,"
+                f" EXPERIMENT one of {', '.join(CAMPAIGN_ORDER)}"
+            )
+        params.setdefault(name, {})[field] = value
+    return params
+
+
+def execute_plan(
+    plan: RunPlan,
+    config: RigConfig,
+    store: RunStore,
+    rig: Rig | None = None,
+    progress: Progress | None = None,
+    hooks: RunHooks | None = None,
+    on_run: Callable[[RunDocument], None] | None = None,
+    should_continue: Callable[[], bool] = lambda: True,
+) -> list[RunDocument]:
+    """Play a plan's runs in turn on `rig` (or on a fresh rig per run from `config`); each run's document.
+
+    A run that ends aborted stops a campaign unless the plan says keep_going; `should_continue` is asked
+    before each run (an abort of the whole job). A device fault always stops it: once the run it ended
+    is recorded and told (`on_run`), the fault is raised again for the caller to see.
+    """
+    documents: list[RunDocument] = []
+    count = len(plan.runs)
+    for index, planned in enumerate(plan.runs):
+        if index and not should_continue():
+            break
+        report = None
+        if progress is not None:
+            report = _share_of(progress, index, count)
+        run_hooks = hooks if index == 0 or hooks is None else replace(hooks, run_id=None)
+        outcome = run_experiment(planned.experiment, config, planned.params, store, report, rig, run_hooks)
+        document = run_document(store, outcome.run_id, outcome)
+        documents.append(document)
+        if on_run is not None:
+            on_run(document)
+        if outcome.fault is not None:
+            raise DeviceFault(outcome.fault)
+        if outcome.status == RunStatus.ABORTED and not plan.keep_going:
+            break
+    return documents
+
+
+def _share_of(progress: Progress, index: int, count: int) -> Progress:
+    def report(label: str, fraction: float) -> None:
+        progress(label, (index + fraction) / count)
+
+    return report
+
+
+def reserve_run_id(plan: RunPlan) -> str:
+    """An id for the plan's first run before it starts (the service names queued runs)."""
+    return new_run_id(plan.runs[0].experiment)
+
+
+# ---- the catalog --------------------------------------------------------------------------------
+
+
+def _artifacts(run_dir: Path) -> list[str]:
+    folder = run_dir / ARTIFACTS_DIR
+    return sorted(str(p) for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else []
+
+
+def _document(store: RunStore, entry: dict[str, Any], with_artifacts: bool) -> RunDocument:
+    run_dir = store.run_dir(entry["id"])
+    status = RunStatus(entry["status"])
+    return RunDocument(
+        id=entry["id"],
+        experiment=entry["experiment"],
+        status=status,
+        reason=entry["reason"],
+        rig=entry["rig"],
+        model_name=entry["model_name"],
+        model_hash=entry["model_hash"],
+        started=entry["started"],
+        ended=entry["ended"],
+        samples=entry["samples"],
+        progress=1.0 if status == RunStatus.COMPLETE else 0.0,
+        metrics=entry["metrics"],
+        meta=entry["meta"],
+        path=entry["path"],
+        run_dir=str(run_dir),
+        artifacts=_artifacts(run_dir) if with_artifacts else [],
+    )
+
+
+def list_runs(store: RunStore) -> list[RunDocument]:
+    """Every run in the catalog, oldest first (artifacts are listed by `show_run`)."""
+    return [_document(store, entry, with_artifacts=False) for entry in store.list_runs()]
+
+
+def run_document(store: RunStore, run_id: str, outcome: RunOutcome | None = None) -> RunDocument:
+    """One run with its metrics and artifacts (`hdrig runs show`)."""
+    document = _document(store, store.get(run_id), with_artifacts=True)
+    if outcome is not None and outcome.reason and not document.reason:
+        document.reason = outcome.reason
+    return document
+
+
+def export_run(store: RunStore, run_id: str, fmt: str, out: str | Path) -> Path:
+    """Write a run as csv, parquet or mat (a folder gets `<id>.<fmt>`)."""
+    store.get(run_id)  # an unknown id is told as such; a run whose writer died is sealed first
+    return store.export(run_id, fmt, out)
+
+
+# ---- identification and the gap workflow --------------------------------------------------------
+
+
+def _analysis_folder(store: RunStore, kind: str, analysis_id: str | None) -> Path:
+    name = analysis_id or f"{datetime.now(UTC):%Y%m%d-%H%M%S}-{kind}-{new_run_id(kind)[-4:]}"
+    folder = store.home / ANALYSES_DIR / name
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _runs_for(data: Sequence[str], store: RunStore) -> list[Run]:
+    if not data:
+        raise UserInputError("data: name at least one run id, run file or `latest`")
+    return load_runs(list(data), store)
+
+
+def fit(
+    data: Sequence[str],
+    model: str,
+    store: RunStore,
+    out: str | Path | None = None,
+    report_dir: str | Path | None = None,
+    joint: bool = True,
+    progress: Progress | None = None,
+    analysis_id: str | None = None,
+) -> FitDocument:
+    """Identify the model's parameters from runs (store ids, files or `latest`); see the module doc."""
+    from rig.identification import identify, save_identified
+    from rig.identification.identify import FIT_METRIC
+
+    start = load_model(model)
+    runs = _runs_for(data, store)
+    folder = _analysis_folder(store, "fit", analysis_id)
+    report = Path(report_dir) if report_dir is not None else None
+    result = identify(runs, start, joint=joint, report_dir=report, progress=progress)
+    save_identified(result, Path(out) if out is not None else folder / MODEL_FILE)
+    document = FitDocument(
+        model_file=str(result.model_file),
+        parameters={
+            row.name: FitParameter(
+                estimate=row.estimate,
+                uncertainty=row.uncertainty,
+                start=row.start,
+                identifiable=row.identifiable,
+                stage=row.stage,
+                note=row.note,
+            )
+            for row in result.parameters
+        },
+        fit_error=FitError(metric=FIT_METRIC, before=result.fit_error_before, after=result.fit_error_after),
+        validation=result.validation.as_json() if result.validation else None,
+        report=str(result.report_file) if result.report_file else None,
+        notes=list(result.notes),
+        folder=str(folder),
+    )
+    (folder / RESULT_FILE).write_text(json_text(document.as_json(), indent=2) + "\n")
+    return document
+
+
+def find_gaps(
+    data: Sequence[str],
+    model: str,
+    store: RunStore,
+    out: str | Path | None = None,
+    report_dir: str | Path | None = None,
+    progress: Progress | None = None,
+    analysis_id: str | None = None,
+) -> GapsDocument:
+    """The model-gap workflow on runs; the model with the effects added (if any) is written as the
+    module says."""
+    from model.gaps import find_gaps as workflow
+
+    start = load_model(model)
+    runs = _runs_for(data, store)
+    folder = _analysis_folder(store, "gaps", analysis_id)
+    model_out = Path(out) if out is not None else folder / MODEL_FILE
+    result = workflow(runs, start, report_dir=report_dir, progress=progress, model_out=model_out)
+    document = GapsDocument(
+        metric=result.metric,
+        initial_gap=result.initial_gap,
+        steps=[
+            GapStepDocument(
+                effect=step.effect,
+                gap_before=step.gap_before,
+                gap_after=step.gap_after,
+                evidence=step.evidence,
+                parameters=dict(step.parameters),
+            )
+            for step in result.steps
+        ],
+        final_gap=result.final_gap,
+        final_model=str(result.final_model),
+        verdict=result.verdict,
+        report=[str(p) for p in result.report],
+        folder=str(folder),
+    )
+    (folder / RESULT_FILE).write_text(json_text(document.as_json(), indent=2) + "\n")
+    return document

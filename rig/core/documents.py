@@ -1,0 +1,163 @@
+"""The documents hdrig answers with: what `--json` prints and what the REST service returns.
+
+One pydantic model per kind of answer, so the command line and the service say the same thing in the
+same shape, and the service's OpenAPI schema is these models' field descriptions.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from enum import StrEnum
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from rig.status import RunStatus
+
+
+class Document(BaseModel):
+    """Base of every answer: `as_json()` is exactly what `--json` prints and the service returns."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    def as_json(self) -> dict[str, Any]:
+        return self.model_dump(mode="json")
+
+
+class ModelSummary(Document):
+    name: str = Field(description="preset name, usable as --model")
+    effects: list[str] = Field(description="effect sections the model carries (docs/MODEL.md vocabulary)")
+    description: str
+
+
+class ExperimentInfo(Document):
+    name: str = Field(description="experiment name, as in `hdrig run NAME`")
+    summary: str = Field(description="what it plays and what it derives")
+    params_schema: dict[str, Any] = Field(
+        description="JSON Schema of its parameters: defaults, units, ranges"
+    )
+
+
+class PlannedRun(Document):
+    experiment: str
+    params: dict[str, Any] = Field(description="the experiment's parameters, validated, defaults filled in")
+
+
+class RunPlan(Document):
+    """What a start request asks for, validated before the rig is touched."""
+
+    experiment: str = Field(description="an experiment name, or `campaign` for all of them in turn")
+    runs: list[PlannedRun] = Field(description="the runs to play, in order")
+    keep_going: bool = Field(default=False, description="campaign: go on after a run aborts")
+
+
+class RunDocument(Document):
+    """One run of the catalog (`hdrig runs show --json`, `GET /api/v1/runs/{id}`)."""
+
+    id: str
+    experiment: str
+    status: RunStatus
+    reason: str | None = Field(default=None, description="why it ended as it did (`aborted: ...`)")
+    rig: str | None = None
+    model_name: str | None = Field(default=None, description="the simulated plant's model (None on hardware)")
+    model_hash: str | None = None
+    started: str | None = Field(default=None, description="UTC, ISO 8601")
+    ended: str | None = None
+    samples: int = Field(default=0, description="samples on disk")
+    progress: float = Field(default=0.0, ge=0.0, le=1.0, description="fraction of the run done")
+    metrics: dict[str, Any] = Field(default_factory=dict, description="the analysis' scalar results")
+    meta: dict[str, Any] = Field(default_factory=dict, description="the run's metadata (params, segments...)")
+    path: str | None = Field(default=None, description="the run's data file")
+    run_dir: str | None = Field(default=None, description="the run's folder (data, artifacts/)")
+    artifacts: list[str] = Field(default_factory=list, description="tables, results.json and plots")
+    owner: str | None = Field(default=None, description="who started it (the API key's name; None: CLI)")
+
+
+class FitParameter(Document):
+    estimate: float
+    uncertainty: float | None = Field(description="1 σ; None when the data do not determine it")
+    start: float = Field(description="the starting model's value")
+    identifiable: bool
+    stage: str = Field(description="the identification stage that set it")
+    note: str = ""
+
+
+class FitError(Document):
+    metric: str
+    before: float
+    after: float
+
+
+class FitDocument(Document):
+    """`hdrig fit --json`; the result of a fit job."""
+
+    model_file: str | None
+    parameters: dict[str, FitParameter]
+    fit_error: FitError
+    validation: list[dict[str, Any]] | None = Field(description="the validation table, with a report")
+    report: str | None = Field(description="report.md, when a report was asked for")
+    notes: list[str]
+    folder: str | None = Field(default=None, description="the analysis folder holding its files")
+
+
+class GapStepDocument(Document):
+    effect: str = Field(description="the effect added, from the docs/MODEL.md vocabulary")
+    gap_before: float
+    gap_after: float
+    evidence: str
+    parameters: dict[str, float]
+
+
+class GapsDocument(Document):
+    """`hdrig gaps --json` (docs/INTERFACE.md); the result of a gap job."""
+
+    metric: str
+    initial_gap: float
+    steps: list[GapStepDocument]
+    final_gap: float
+    final_model: str | None
+    verdict: str = Field(default="", description="one line: what was found")
+    report: list[str] = Field(default_factory=list, description="the report's files, with --report")
+    folder: str | None = Field(default=None, description="the analysis folder holding its files")
+
+
+class JobKind(StrEnum):
+    RUN = "run"
+    CAMPAIGN = "campaign"
+    FIT = "fit"
+    GAPS = "gaps"
+
+
+class JobStatus(StrEnum):
+    QUEUED = "queued"
+    RUNNING = "running"
+    COMPLETE = "complete"
+    ABORTED = "aborted"  # a run of it ended aborted (trip, fault, quick stop, abort)
+    FAILED = "failed"  # it raised: bad input found late, or a bug (the detail says)
+
+    @property
+    def finished(self) -> bool:
+        return self not in (JobStatus.QUEUED, JobStatus.RUNNING)
+
+
+class Progress(Document):
+    fraction: float = Field(default=0.0, ge=0.0, le=1.0)
+    phase: str = Field(default="", description="what is being done")
+    eta_s: float | None = Field(default=None, description="seconds left, estimated from the pace so far")
+
+
+class JobDocument(Document):
+    """One job: an experiment, a campaign, a fit or a gap analysis."""
+
+    id: str
+    kind: JobKind
+    status: JobStatus
+    owner: str | None = None
+    created: datetime
+    started: datetime | None = None
+    ended: datetime | None = None
+    progress: Progress = Field(default_factory=Progress)
+    request: dict[str, Any] = Field(default_factory=dict, description="what was asked")
+    runs: list[str] = Field(default_factory=list, description="ids of the runs it recorded")
+    result: dict[str, Any] | list[Any] | None = Field(default=None, description="the finished job's document")
+    error: str | None = Field(default=None, description="why it failed, one line")
