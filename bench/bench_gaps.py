@@ -31,13 +31,13 @@ from typing import Any
 
 import numpy as np
 
+from hdrig_testing.hidden_effects import HIDDEN, Case, hidden_case, record_probe
 from model.gaps import find_gaps
 from model.gaps.effects import Context
 from model.gaps.residual import Residual
 from model.gaps.signals import Signals, prepare
 from model.gaps.workflow import GapsResult, residuals_of
 from model.run import Run
-from sim_backend.hidden_effects import HIDDEN, Case, hidden_case, record_probe
 
 DT_S = 1e-4
 MIN_SHRINK = 1.25

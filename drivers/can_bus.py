@@ -1,18 +1,18 @@
 """The CAN bus under the CANopen driver: which interface, opening it, and recording its raw traffic.
 
 python-can picks the interface by name (`socketcan`, `pcan`, `kvaser`, `virtual`...), so the bus is a
-setting, never code. Tests run on python-can's in-process `virtual` interface with a channel name of
-their own; `HDRIG_TEST_CAN=socketcan:vcan0` moves the very same tests onto a Linux vcan bus.
+setting, never code. Tests take a bus of their own from `hdrig_testing.can_bus`.
+
+A bus that will not open, or a raw log that cannot be written, is the user's to fix (`CanBusError`, a
+`UserInputError`); a bus that fails under a working drive is the servo driver's device fault.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
-import os
 import threading
 import time
-import uuid
 from pathlib import Path
 from typing import cast
 
@@ -25,7 +25,6 @@ from model.errors import UserInputError
 
 logger = logging.getLogger(__name__)
 
-TEST_BUS_ENV = "HDRIG_TEST_CAN"
 LOG_SUFFIXES = (".blf", ".asc")
 
 
@@ -54,20 +53,6 @@ def open_bus(settings: BusSettings) -> can.BusABC:
         raise CanBusError(
             f"canopen bus {settings.interface}:{settings.channel} cannot be opened: {exc}"
         ) from None
-
-
-def bus_settings_for_test(name: str) -> BusSettings:
-    """A bus for one test: `virtual` on a channel no other test uses, or `$HDRIG_TEST_CAN`.
-
-    `HDRIG_TEST_CAN` is `interface:channel`, e.g. `socketcan:vcan0`.
-    """
-    spec = os.environ.get(TEST_BUS_ENV, "").strip()
-    if not spec:
-        return BusSettings(interface="virtual", channel=f"hdrig-{name}-{uuid.uuid4().hex[:8]}")
-    interface, sep, channel = spec.partition(":")
-    if not sep or not interface or not channel:
-        raise CanBusError(f"{TEST_BUS_ENV}={spec!r}: expected interface:channel, e.g. socketcan:vcan0")
-    return BusSettings(interface=interface, channel=channel)
 
 
 class TrafficRecorder(can.Listener):

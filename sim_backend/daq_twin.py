@@ -41,7 +41,7 @@ from drivers.daq_protocol import (
     split_tag,
 )
 from model import kernel as k
-from model.plant import InputMode, Plant
+from model.plant import Plant
 from rig.config import Sensors
 
 Source = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -69,34 +69,6 @@ class PlantStateSource:
     def __call__(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = self.plant.x
         return np.full(t_s.shape, x[k.X_THETA_M]), np.full(t_s.shape, x[k.X_THETA_L])
-
-
-class SteppedPlantSource:
-    """A plant this source steps itself, under `drive(t)` (vectorized over step times [s]), from the
-    device time of its first call: a standalone twin with real plant motion."""
-
-    def __init__(
-        self,
-        plant: Plant,
-        drive: Callable[[np.ndarray], np.ndarray],
-        mode: InputMode = "voltage",
-        dt_s: float = 1e-4,
-    ) -> None:
-        self.plant, self.drive, self.mode, self.dt_s = plant, drive, mode, dt_s
-        self._device_minus_plant_s: float | None = None
-
-    def __call__(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = self.plant.x
-        if self._device_minus_plant_s is None:
-            self._device_minus_plant_s = float(t_s[0]) - float(x[k.X_TIME])
-        theta_m, theta_l = np.empty(t_s.shape), np.empty(t_s.shape)
-        for i, t in enumerate(t_s):
-            steps = round((t - self._device_minus_plant_s - x[k.X_TIME]) / self.dt_s)
-            if steps > 0:
-                step_times = self._device_minus_plant_s + x[k.X_TIME] + self.dt_s * np.arange(steps)
-                self.plant.advance(self.drive(step_times), self.mode, dt_s=self.dt_s, decim=steps)
-            theta_m[i], theta_l[i] = x[k.X_THETA_M], x[k.X_THETA_L]
-        return theta_m, theta_l
 
 
 class _RefusedError(Exception):

@@ -18,7 +18,7 @@ from typing import Any
 import canopen
 import pytest
 
-from drivers.can_bus import bus_settings_for_test, open_bus
+from drivers.can_bus import open_bus
 from drivers.canopen_config import (
     CanopenConfigError,
     CanopenSettings,
@@ -30,6 +30,7 @@ from drivers.canopen_config import (
 )
 from drivers.canopen_servo import CanopenServo
 from drivers.cia402 import SUPPORTED_MODE_BIT, OperationMode, State
+from hdrig_testing.can_bus import bus_settings_for_test
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, load_rig_config
 from sim_backend.cia402_twin import TWIN_EDS, Cia402Twin

@@ -22,10 +22,11 @@ import numpy as np
 import pytest
 import yaml
 
-from drivers.can_bus import BusSettings, TrafficRecorder, bus_settings_for_test, open_bus
+from drivers.can_bus import BusSettings, TrafficRecorder, open_bus
 from drivers.canopen_config import CanopenConfigError, boot_plan
 from drivers.canopen_servo import CanopenServo, DriveFaultError, DriveSettingError, SyncTimeoutError
 from drivers.cia402 import OperationMode, State
+from hdrig_testing.can_bus import bus_settings_for_test
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig

@@ -17,7 +17,8 @@ import can
 import canopen
 import pytest
 
-from drivers.can_bus import bus_settings_for_test, open_bus
+from drivers.can_bus import open_bus
+from hdrig_testing.can_bus import bus_settings_for_test
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, load_rig_config
 from sim_backend.cia402_twin import TWIN_EDS, Cia402Twin

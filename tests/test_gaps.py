@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hdrig_testing.hidden_effects import HIDDEN, hidden_case, record_open_loop, record_probe
 from model.gaps import METRIC, GapsResult, find_gaps
 from model.params import load_model, save_model
 from rig.runfile import write_run
-from sim_backend.hidden_effects import HIDDEN, hidden_case, record_open_loop, record_probe
 
 SHRINK = 3.0
 DURATION_S = 12.0  # long enough for thermal drift (τ = 4 s) and a pass over the stroke, short for the suite

@@ -30,12 +30,13 @@ from drivers.daq_protocol import (
     encode_reply_frame,
 )
 from drivers.serial_daq import ClockEstimate, ClockModel, DaqConfigError, DaqError, SerialDaq
+from hdrig_testing.stepped_plant import SteppedPlantSource
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from model.plant import Plant
 from rig.config import Sensors
 from rig.faults import DeviceFault
-from sim_backend.daq_twin import DaqTwin, SteppedPlantSource
+from sim_backend.daq_twin import DaqTwin
 
 needs_pty = pytest.mark.skipif(not hasattr(os, "openpty"), reason="no pseudo-terminals on this platform")
 Transport = Literal["pty", "socket"]

@@ -24,9 +24,10 @@ import numpy as np
 import pytest
 import yaml
 
-from drivers.can_bus import bus_settings_for_test, open_bus
+from drivers.can_bus import open_bus
 from drivers.canopen_config import CanopenSettings
 from drivers.hardware_rig import RAW_CAN_LOG, BenchConstants, CycleLog, HardwareConfigError
+from hdrig_testing.can_bus import bus_settings_for_test
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig, load_rig_config

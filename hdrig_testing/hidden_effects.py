@@ -65,8 +65,6 @@ def record_probe(
     angle, the load torque (unless `load_nm` is 0: then no column, as on a bench without a load
     actuator) and, with `load_sensor`, the noisy output angle.
     """
-    # Imported here: the model package does not depend on the rig, only this test-data maker does.
-
     config = load_rig_config("sim")
     config = config.model_copy(update={"sensors": config.sensors.model_copy(update={"seed": seed})})
     rig = SimRig(config, model=truth)

@@ -1,0 +1,28 @@
+"""A CAN bus of its own for each test: python-can's in-process `virtual` interface, or a real one.
+
+`HDRIG_TEST_CAN=socketcan:vcan0` moves the very same tests onto a Linux vcan bus
+(`ip link add dev vcan0 type vcan && ip link set up vcan0`).
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+
+from drivers.can_bus import BusSettings, CanBusError
+
+TEST_BUS_ENV = "HDRIG_TEST_CAN"
+
+
+def bus_settings_for_test(name: str) -> BusSettings:
+    """A bus for one test: `virtual` on a channel no other test uses, or `$HDRIG_TEST_CAN`.
+
+    `HDRIG_TEST_CAN` is `interface:channel`, e.g. `socketcan:vcan0`.
+    """
+    spec = os.environ.get(TEST_BUS_ENV, "").strip()
+    if not spec:
+        return BusSettings(interface="virtual", channel=f"hdrig-{name}-{uuid.uuid4().hex[:8]}")
+    interface, sep, channel = spec.partition(":")
+    if not sep or not interface or not channel:
+        raise CanBusError(f"{TEST_BUS_ENV}={spec!r}: expected interface:channel, e.g. socketcan:vcan0")
+    return BusSettings(interface=interface, channel=channel)
