@@ -37,6 +37,7 @@ import numpy as np
 from drivers.hardware_rig import CycleLog
 from rig.config import RIG_DIR, load_rig_config
 from rig.interface import ControlMode, Segment
+from rig.realtime import quiet_heap
 from sim_backend.virtual_bus import VirtualCanRig
 
 RIG = RIG_DIR / "virtual-can.yaml"
@@ -118,7 +119,7 @@ def main() -> None:
     load_before = os.getloadavg()[0]
     blocks: list[dict[str, np.ndarray]] = []
     rig = VirtualCanRig(config)
-    with rig:
+    with rig, quiet_heap():  # this process owns the loop: its heap policy (rig.realtime)
         assert rig.twin is not None and rig.daq is not None
         daq_rate = rig.daq.command("RATE?")
         rig.cycle_log = CycleLog()

@@ -28,8 +28,8 @@ Modes: current → CST, velocity → CSV, position → CSP; voltage is refused (
 mode). A mode change between segments is disable → configure → enable (the drive refuses a remap
 while powered); the cycles it takes are not recorded, so `t` jumps over them.
 
-While enabled, the rig keeps the garbage collector off the objects that existed at `enable()`
-(`_FrozenHeap`): a full collection would stall the loop for 50-80 ms.
+The rig does not touch the garbage collector, whose full collections would stall the loop for
+50-80 ms: that is a policy of the process that owns the loop (`rig.realtime.quiet_heap`).
 
 Every cycle the rig envelope is checked (`rig.safety.envelope_breach`) with the measured values, and
 the chunk ends at the first breach. A drive that faults or leaves OPERATION ENABLED on its own, or
@@ -41,7 +41,6 @@ another `UserInputError`, raised before anything moves.
 
 from __future__ import annotations
 
-import gc
 import logging
 import math
 import threading
@@ -83,37 +82,6 @@ Load = Callable[[float], None]
 """Applies the load torque τ_ext [N·m] of the next cycle (the virtual backend's twin; no bench has one)."""
 SampleClock = Callable[[Feedback], float]
 """The `t` of a row from the drive's answer [s]."""
-
-
-class _FrozenHeap:
-    """Keeps the cyclic garbage collector off the objects that exist while any rig is enabled.
-
-    A full collection walks every tracked object of the interpreter (~10⁵ here: numba, scipy,
-    canopen's dictionaries) with the GIL held: 50-80 ms, long enough to stall the SYNC grid and to
-    time out the drive's answer. Enabling a rig collects once, then freezes what exists (`gc.freeze`),
-    so that collections during the run walk only what the run makes; the last rig to disable or
-    close unfreezes it, and garbage among those objects is collected again from then on.
-    """
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._holders = 0
-
-    def hold(self) -> None:
-        with self._lock:
-            self._holders += 1
-            if self._holders == 1:
-                gc.collect()
-                gc.freeze()
-
-    def release(self) -> None:
-        with self._lock:
-            self._holders -= 1
-            if self._holders == 0:
-                gc.unfreeze()
-
-
-_FROZEN_HEAP = _FrozenHeap()
 
 
 class HardwareConfigError(UserInputError):
@@ -332,7 +300,6 @@ class HardwareRig(Rig):
         self._daq_samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # device time, θ_l, θ_m
         self._clock_stop = threading.Event()
         self._clock_thread: threading.Thread | None = None
-        self._holds_heap = False
         self.cycle_log: CycleLog | None = None
         self.daq_tally = DaqTally()
 
@@ -364,9 +331,6 @@ class HardwareRig(Rig):
 
     def _enable(self) -> None:
         self._pending_error = None
-        if not self._holds_heap:
-            _FROZEN_HEAP.hold()
-            self._holds_heap = True
         self._start_daq()
         if self.servo.mode is None:
             self.servo.configure(ControlMode.VELOCITY)  # holds still until a segment says otherwise
@@ -377,13 +341,7 @@ class HardwareRig(Rig):
             self.servo.disable()
         finally:
             self._stop_daq()
-            self._release_heap()
         self._raise_pending()
-
-    def _release_heap(self) -> None:
-        if getattr(self, "_holds_heap", False):
-            self._holds_heap = False
-            _FROZEN_HEAP.release()
 
     def _quick_stop(self) -> None:
         try:
@@ -417,7 +375,6 @@ class HardwareRig(Rig):
         try:
             self.servo.close()
         finally:
-            self._release_heap()
             if self.daq is not None:
                 self.daq.close()
 

@@ -1,10 +1,13 @@
-"""Shared fixtures: the presets."""
+"""Shared fixtures: the presets, and the heap policy of a process that runs a control loop."""
 
 from __future__ import annotations
+
+from collections.abc import Iterator
 
 import pytest
 
 from model.params import HarmonicDriveModel, load_model
+from rig import realtime
 
 
 @pytest.fixture(scope="session")
@@ -15,3 +18,12 @@ def seed() -> HarmonicDriveModel:
 @pytest.fixture(scope="session")
 def seed_rigid() -> HarmonicDriveModel:
     return load_model("seed-rigid")
+
+
+@pytest.fixture(scope="module")
+def quiet_heap() -> Iterator[None]:
+    """The heap frozen for the module's tests (`rig.realtime.quiet_heap`), as the command line's `run`
+    freezes it for its process: for tests whose rig holds a 1 kHz SYNC grid in this process, where a
+    full collection of the heap would stall the loop long enough to time out the drive."""
+    with realtime.quiet_heap():
+        yield

@@ -54,6 +54,9 @@ RUNAWAY_LOAD = "tau_ext_nm=50"
 TORQUE_TOLERANCE_NM = 1.5e-4
 SPEED_TOLERANCE_RAD_S = 1e-3
 
+# The rigs here run the drive and DAQ twins in this process, some paced to the 1 ms grid.
+pytestmark = pytest.mark.usefixtures("quiet_heap")
+
 
 def hdrig(home: Path, *args: str) -> subprocess.CompletedProcess[str]:
     """`hdrig ARGS` (as `python -m rig`) with its store in `home`."""
@@ -150,7 +153,7 @@ PACED_SPEED_RAD_S = 20.0  # slow enough that a cycle's motion is small beside th
 
 
 @pytest.fixture(scope="module")
-def paced() -> PacedRun:
+def paced(quiet_heap: None) -> PacedRun:
     """1.5 s at 20 rad/s on virtual-can held to the 1 ms SYNC grid, with the timing and the plant kept."""
     config = load_rig_config(VIRTUAL_CAN).model_copy(update={"pace": "realtime"})
     rig = VirtualCanRig(config)
