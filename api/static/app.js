@@ -1,0 +1,630 @@
+// hdrig's browser page: log in, watch the rig, start experiments, follow a run live, stop it.
+// Plain ES modules, no build step and no network beyond the service itself (labs have no internet).
+
+import { ProblemError, errorLines, request, whenUnauthorized } from "./api.js";
+import { RollingWindow, drawPlot } from "./plot.js";
+
+const RIG_POLL_MS = 1000; // the rig's state: often, it is what an operator watches
+const LISTS_POLL_MS = 5000; // runs and jobs: they change when runs end, the stream tells us sooner
+const WINDOW_S = 10; // live plots show the last ten seconds
+const FINAL_RUN_STATUSES = new Set(["complete", "aborted", "interrupted", "failed"]);
+const FINAL_JOB_STATUSES = new Set(["complete", "aborted", "failed"]);
+const RECENT_RUNS = 25;
+
+const PLOTS = [
+  { canvas: "plot-omega", column: "omega_m", title: "speed ω_m", unit: "rad/s", color: "#1565c0" },
+  { canvas: "plot-current", column: "i_a", title: "current i_a", unit: "A", color: "#c62828" },
+  { canvas: "plot-position", column: "theta_m", title: "position θ_m", unit: "rad", color: "#2e7d32" },
+  { canvas: "plot-error", column: "error", title: "tracking error (set-point − measured)", unit: "–", color: "#6a1b9a" },
+];
+
+const $ = (id) => document.getElementById(id);
+
+const page = {
+  loggedIn: false,
+  experiments: [],
+  timers: [],
+  live: null, // {runId, source, window, lastEventId}
+};
+
+// ---- small DOM helpers --------------------------------------------------------------------------
+
+/** Build an element; children are nodes or text (always text: nothing from the service is parsed as HTML). */
+function el(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attrs)) {
+    if (value === undefined || value === null || value === false) continue;
+    if (key === "dataset") Object.assign(node.dataset, value);
+    else if (key in node && typeof value !== "string") node[key] = value;
+    else node.setAttribute(key, value === true ? "" : value);
+  }
+  for (const child of children.flat()) {
+    if (child === undefined || child === null) continue;
+    node.append(child instanceof Node ? child : String(child));
+  }
+  return node;
+}
+
+function showMessage(text, seconds = 8) {
+  const box = $("message");
+  box.textContent = text;
+  box.hidden = false;
+  clearTimeout(showMessage.timer);
+  if (seconds) showMessage.timer = setTimeout(() => (box.hidden = true), seconds * 1000);
+}
+
+/** A problem document next to the form that caused it: title, detail and one line per field error. */
+function showProblem(box, error) {
+  box.replaceChildren();
+  if (!error) {
+    box.hidden = true;
+    return;
+  }
+  const problem = error instanceof ProblemError ? error.problem : { title: String(error), detail: "" };
+  box.append(el("strong", {}, `${problem.status ? problem.status + " " : ""}${problem.title || "error"}`));
+  if (problem.detail) box.append(el("p", {}, problem.detail));
+  const lines = errorLines(problem).filter((line) => line !== problem.detail);
+  if (lines.length) box.append(el("ul", {}, lines.map((line) => el("li", {}, line))));
+  box.hidden = false;
+}
+
+function fmt(value) {
+  if (typeof value === "number") return Number.isInteger(value) ? String(value) : Number(value.toPrecision(4)).toString();
+  if (value === null || value === undefined) return "–";
+  if (typeof value === "object") return JSON.stringify(value);
+  return String(value);
+}
+
+function formatSeconds(s) {
+  if (s === null || s === undefined || !Number.isFinite(s)) return "";
+  if (s < 90) return `${Math.round(s)} s`;
+  return `${Math.floor(s / 60)} min ${Math.round(s % 60)} s`;
+}
+
+// ---- login --------------------------------------------------------------------------------------
+
+function showLogin(why) {
+  page.loggedIn = false;
+  stopPolling();
+  $("app").hidden = true;
+  $("logout").hidden = true;
+  $("rig-summary").hidden = true;
+  $("login").hidden = false;
+  if (why) showProblem($("login-problem"), why);
+  $("login-key").focus();
+}
+
+async function login(event) {
+  event.preventDefault();
+  const key = $("login-key").value.trim();
+  try {
+    await request("POST", "/session", { key });
+    $("login-key").value = ""; // the key is not kept: the HttpOnly cookie holds the session
+    showProblem($("login-problem"), null);
+    await enterApp();
+  } catch (error) {
+    showProblem($("login-problem"), error);
+  }
+}
+
+async function logout() {
+  try {
+    await request("DELETE", "/session");
+  } catch {
+    // gone already: the login form is what we show either way
+  }
+  closeLive();
+  showLogin();
+}
+
+async function enterApp() {
+  page.loggedIn = true;
+  $("login").hidden = true;
+  $("app").hidden = false;
+  $("logout").hidden = false;
+  await Promise.all([loadExperiments(), pollRig(), refreshRuns(), refreshJobs()]);
+  startPolling();
+}
+
+// ---- polling ------------------------------------------------------------------------------------
+
+/** Repeat `task` every `ms` after it finished, so a slow answer never piles requests up. */
+function every(ms, task) {
+  let timer;
+  const loop = async () => {
+    try {
+      await task();
+    } catch (error) {
+      if (!(error instanceof ProblemError && error.status === 401)) console.warn(error);
+    }
+    if (page.loggedIn) timer = setTimeout(loop, ms);
+  };
+  timer = setTimeout(loop, ms);
+  page.timers.push(() => clearTimeout(timer));
+}
+
+function startPolling() {
+  stopPolling();
+  every(RIG_POLL_MS, pollRig);
+  every(LISTS_POLL_MS, refreshRuns);
+  every(LISTS_POLL_MS, refreshJobs);
+}
+
+function stopPolling() {
+  for (const cancel of page.timers) cancel();
+  page.timers = [];
+}
+
+// ---- the rig ------------------------------------------------------------------------------------
+
+async function pollRig() {
+  const rig = await request("GET", "/rig");
+  renderRig(rig);
+  // A run in progress that this page does not follow yet (started elsewhere, or before a reload).
+  const runId = rig.run && (rig.run.id || rig.run.run_id);
+  if (runId && (!page.live || page.live.runId !== runId)) followRun(runId);
+}
+
+function renderRig(rig) {
+  $("rig-summary").hidden = false;
+  $("rig-name").textContent = rig.name || "";
+  const mode = rig.mode || (rig.backend === "sim" ? "sim" : "hardware");
+  const badge = $("rig-mode");
+  badge.textContent = mode === "sim" ? "SIM" : "HARDWARE";
+  badge.className = `badge ${mode === "sim" ? "sim" : "hardware"}`;
+  renderState(rig.state);
+  renderHealth(rig.health || {});
+  renderRigDetails(rig);
+}
+
+function renderState(state) {
+  const node = $("rig-state");
+  node.textContent = state;
+  node.dataset.state = state;
+  node.className = `state ${state}`;
+}
+
+function renderHealth(health) {
+  const faults = health.faults || [];
+  const ok = health.enabled !== false && faults.length === 0;
+  const parts = [health.enabled ? "drive enabled" : "drive disabled"];
+  if (faults.length) parts.push(`faults: ${faults.map(fmt).join(", ")}`);
+  if (health.last_abort) parts.push(`last abort: ${fmt(health.last_abort)}`);
+  const node = $("rig-health");
+  node.textContent = parts.join(" · ");
+  node.className = ok ? "health-ok" : "health-bad";
+}
+
+function renderRigDetails(rig) {
+  const rows = [
+    ["backend", rig.backend],
+    ["state", rig.state],
+    ["run", rig.run ? `${rig.run.id} (${rig.run.experiment}, ${rig.run.status})` : "none"],
+  ];
+  for (const [name, value] of Object.entries(rig.limits || {})) rows.push([`limit ${name}`, fmt(value)]);
+  $("rig-details").replaceChildren(...rows.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]));
+}
+
+/** The big red button: ask the service to stop everything; never blocked by anything on the page. */
+async function stopRig() {
+  try {
+    await request("POST", "/rig/stop");
+    showMessage("Stop sent: the rig is quick-stopping.");
+    pollRig().catch(() => {});
+  } catch (error) {
+    if (error instanceof ProblemError && error.status === 401) {
+      showMessage("STOP NOT SENT: log in first (the service needs a key to move or stop the rig).", 0);
+    } else {
+      showMessage(`STOP FAILED: ${error.message}`, 0);
+    }
+  }
+}
+
+// ---- starting an experiment ---------------------------------------------------------------------
+
+async function loadExperiments() {
+  page.experiments = await request("GET", "/experiments");
+  const select = $("experiment");
+  const chosen = select.value;
+  select.replaceChildren(...page.experiments.map((e) => el("option", { value: e.name }, e.name)));
+  if (chosen && page.experiments.some((e) => e.name === chosen)) select.value = chosen;
+  renderParams();
+}
+
+/** "time each pulse is on [s]" → ["time each pulse is on", "s"]. */
+function splitUnit(description = "") {
+  const match = description.match(/^(.*?)\s*\[([^\]]*)\]\s*$/);
+  return match ? [match[1], match[2]] : [description, ""];
+}
+
+/** The JSON type of a property, through pydantic's `anyOf: [{type: X}, {type: "null"}]` for optionals. */
+function typeOf(schema) {
+  if (schema.type) return schema.type;
+  const options = schema.anyOf || schema.oneOf || [];
+  const first = options.find((o) => o.type && o.type !== "null");
+  return first ? first.type : "string";
+}
+
+function itemsOf(schema) {
+  if (schema.items) return schema.items;
+  const options = schema.anyOf || schema.oneOf || [];
+  const array = options.find((o) => o.type === "array");
+  return (array && array.items) || {};
+}
+
+function rangeText(schema) {
+  const parts = [];
+  if (schema.minimum !== undefined) parts.push(`≥ ${schema.minimum}`);
+  if (schema.exclusiveMinimum !== undefined) parts.push(`> ${schema.exclusiveMinimum}`);
+  if (schema.maximum !== undefined) parts.push(`≤ ${schema.maximum}`);
+  if (schema.exclusiveMaximum !== undefined) parts.push(`< ${schema.exclusiveMaximum}`);
+  return parts.join(", ");
+}
+
+/** One input per property of the experiment's params_schema, its default filled in. */
+function renderParams() {
+  const experiment = page.experiments.find((e) => e.name === $("experiment").value);
+  $("experiment-summary").textContent = experiment ? experiment.summary : "";
+  const properties = (experiment && experiment.params_schema.properties) || {};
+  const fields = Object.entries(properties).map(([name, schema]) => paramField(name, schema));
+  $("params").replaceChildren(...fields);
+  showProblem($("start-problem"), null);
+}
+
+function paramField(name, schema) {
+  const type = typeOf(schema);
+  const [text, unit] = splitUnit(schema.description);
+  const input = el("input", { id: `param-${name}`, name, dataset: { param: name, type } });
+  if (type === "boolean") {
+    input.type = "checkbox";
+    input.checked = Boolean(schema.default);
+  } else {
+    input.type = "text"; // not type=number: a bad value must reach the service, which names the field
+    if (type === "number" || type === "integer") input.inputMode = "decimal";
+    const value = schema.default;
+    input.value = value === undefined || value === null ? "" : Array.isArray(value) ? value.join(", ") : String(value);
+    if (type === "array") input.placeholder = "comma separated";
+  }
+  const hint = [text, rangeText(schema)].filter(Boolean).join(" · ");
+  return el(
+    "label",
+    { dataset: { field: name } },
+    el("span", { title: name }, schema.title || name),
+    input,
+    el("span", { class: "unit" }, unit),
+    hint ? el("span", { class: "hint" }, hint) : null,
+  );
+}
+
+/** "1.5" → 1.5; anything not a number stays text, for the service to refuse by name. */
+function parseScalar(text, type) {
+  const trimmed = text.trim();
+  if ((type === "number" || type === "integer") && trimmed !== "" && Number.isFinite(Number(trimmed))) {
+    return Number(trimmed);
+  }
+  return trimmed;
+}
+
+/** The form's values as the params object; empty fields are left out (the service's default applies). */
+function collectParams() {
+  const params = {};
+  const experiment = page.experiments.find((e) => e.name === $("experiment").value);
+  const properties = (experiment && experiment.params_schema.properties) || {};
+  for (const input of $("params").querySelectorAll("input[data-param]")) {
+    const name = input.dataset.param;
+    const type = input.dataset.type;
+    if (type === "boolean") {
+      params[name] = input.checked;
+    } else if (type === "array") {
+      const itemType = typeOf(itemsOf(properties[name] || {}));
+      const items = input.value.split(",").map((s) => s.trim()).filter((s) => s !== "");
+      params[name] = items.map((s) => parseScalar(s, itemType));
+    } else if (input.value.trim() !== "") {
+      params[name] = parseScalar(input.value, type);
+    }
+  }
+  return params;
+}
+
+async function startRun(event) {
+  event.preventDefault();
+  const body = { experiment: $("experiment").value, params: collectParams(), queue: $("queue").checked };
+  const button = $("start");
+  button.disabled = true;
+  try {
+    const run = await request("POST", "/runs", body);
+    showProblem($("start-problem"), null);
+    showMessage(`Run ${run.id} ${run.status === "queued" ? "queued" : "started"}.`);
+    followRun(run.id);
+    refreshRuns().catch(() => {});
+  } catch (error) {
+    showProblem($("start-problem"), error);
+  } finally {
+    button.disabled = false;
+  }
+}
+
+// ---- the live run -------------------------------------------------------------------------------
+
+/** Follow one run's event stream; EventSource sends the cookie and resumes with Last-Event-ID itself. */
+function followRun(runId) {
+  closeLive();
+  const window = new RollingWindow(["t", ...PLOTS.map((p) => p.column)], WINDOW_S);
+  const source = new EventSource(`/api/v1/runs/${encodeURIComponent(runId)}/events`);
+  page.live = { runId, source, window };
+  $("live-run").textContent = runId;
+  $("live-status").textContent = "";
+  $("live-status").dataset.status = "";
+  $("abort").hidden = false;
+  $("alarms").replaceChildren();
+  $("alarms").hidden = true;
+  renderProgress({ fraction: 0, phase: "waiting", eta_s: null });
+  renderPoints();
+  drawPlots();
+
+  const on = (kind, handler) =>
+    source.addEventListener(kind, (message) => {
+      if (page.live && page.live.source === source) handler(JSON.parse(message.data));
+    });
+  on("state", (data) => renderState(data.state));
+  on("progress", renderProgress);
+  on("samples", onSamples);
+  on("alarm", showAlarm);
+  on("run", onRunDocument);
+  source.onerror = () => {
+    // CLOSED: the service refused the stream (401, 404...): it will not retry, the rig poll goes on.
+    if (source.readyState === EventSource.CLOSED && page.live && page.live.source === source) {
+      $("live-status").textContent = "stream closed";
+    }
+  };
+}
+
+function closeLive() {
+  if (page.live) page.live.source.close();
+  page.live = null;
+  $("abort").hidden = true;
+}
+
+// The error's unit follows the segment's control mode: speed loops track rad/s, position loops rad.
+const ERROR_UNITS = { velocity: "rad/s", position: "rad" };
+
+function onSamples(data) {
+  page.live.window.push(data);
+  const errorPlot = PLOTS.find((p) => p.column === "error");
+  errorPlot.unit = ERROR_UNITS[String(data.mode).toLowerCase().replace(/^.*\./, "")] || "no set-point in this mode";
+  renderPoints();
+  drawPlots();
+}
+
+function renderPoints() {
+  const window = page.live ? page.live.window : null;
+  $("live-points").textContent = String(window ? window.length : 0);
+  $("live-received").textContent = String(window ? window.received : 0);
+}
+
+function drawPlots() {
+  const data = page.live ? page.live.window.data : { t: [] };
+  for (const plot of PLOTS) {
+    drawPlot($(plot.canvas), data.t, data[plot.column] || [], plot);
+  }
+}
+
+function renderProgress({ fraction, phase, eta_s: eta }) {
+  $("progress").value = fraction || 0;
+  const percent = `${Math.round((fraction || 0) * 100)} %`;
+  const left = formatSeconds(eta);
+  $("progress-text").textContent = [percent, phase, left && `${left} left`].filter(Boolean).join(" · ");
+}
+
+/** Alarms stay on screen (red, on top of the live section) until the next run is followed. */
+function showAlarm({ alarm, why }) {
+  const box = $("alarms");
+  box.append(el("p", { dataset: { alarm } }, `⚠ ${alarm}${why ? `: ${why}` : ""}`));
+  box.hidden = false;
+}
+
+function onRunDocument(run) {
+  const status = run.status;
+  $("live-status").textContent = status;
+  $("live-status").dataset.status = status;
+  if (FINAL_RUN_STATUSES.has(status)) {
+    // The stream ends after the final document; closing it here keeps EventSource from reconnecting.
+    page.live.source.close();
+    $("abort").hidden = true;
+    const fraction = status === "complete" ? 1 : $("progress").value;
+    renderProgress({ fraction, phase: status, eta_s: null }); // no ETA once it has ended
+    if (run.reason) showMessage(`Run ${run.id} ${status}: ${run.reason}`, 0);
+    refreshRuns().catch(() => {});
+    refreshJobs().catch(() => {});
+  }
+}
+
+async function abortRun() {
+  if (!page.live) return;
+  try {
+    await request("POST", `/runs/${encodeURIComponent(page.live.runId)}/abort`);
+    showMessage(`Abort of ${page.live.runId} sent.`);
+  } catch (error) {
+    showMessage(`Abort failed: ${error.message}`, 0);
+  }
+}
+
+// ---- recent runs --------------------------------------------------------------------------------
+
+async function refreshRuns() {
+  const runs = await request("GET", "/runs");
+  const recent = runs.slice(-RECENT_RUNS).reverse(); // the catalog is oldest first
+  const body = $("runs").tBodies[0];
+  const rows = new Map([...body.rows].map((row) => [row.dataset.id, row]));
+  const wanted = recent.map((run) => {
+    const signature = JSON.stringify([run.status, run.samples, run.metrics, run.artifacts, run.reason]);
+    const row = rows.get(run.id);
+    // Unchanged rows stay as they are, so an opened file list is not closed under the user.
+    return row && row.dataset.signature === signature ? row : runRow(run, signature);
+  });
+  body.replaceChildren(...wanted);
+}
+
+function runRow(run, signature) {
+  return el(
+    "tr",
+    { dataset: { id: run.id, status: run.status, signature } },
+    el("td", {}, run.id),
+    el("td", {}, run.experiment),
+    el("td", { class: `status-${run.status}`, title: run.reason || "" }, run.status),
+    el("td", {}, run.started ? new Date(run.started).toLocaleString() : "–"),
+    el("td", {}, fmt(run.samples)),
+    el("td", {}, metricsCell(run.metrics || {})),
+    el("td", {}, artifactsCell(run)),
+    el("td", {}, downloadLinks(run)),
+  );
+}
+
+function metricsCell(metrics) {
+  const entries = Object.entries(metrics).filter(([, v]) => typeof v !== "object" || v === null);
+  const shown = entries.slice(0, 6).map(([k, v]) => `${k} = ${fmt(v)}`);
+  const all = Object.entries(metrics).map(([k, v]) => `${k} = ${fmt(v)}`).join("\n");
+  return el("span", { class: "metrics", title: all }, shown.join("; ") + (entries.length > 6 ? "; …" : ""));
+}
+
+/** The artifact's path under the run's artifacts folder (the store lists absolute paths). */
+function artifactPath(path) {
+  const marker = "/artifacts/";
+  const at = path.lastIndexOf(marker);
+  return at >= 0 ? path.slice(at + marker.length) : path;
+}
+
+function artifactLink(runId, path) {
+  const relative = artifactPath(path);
+  const url = `/api/v1/runs/${encodeURIComponent(runId)}/artifacts/${relative.split("/").map(encodeURIComponent).join("/")}`;
+  const label = relative.split("/").pop();
+  return el("a", { href: url, target: "_blank", rel: "noopener", class: relative.endsWith(".png") ? "plot" : "table" }, label);
+}
+
+/** The catalog may leave artifacts out of the list: then they are fetched when the row is opened. */
+function artifactsCell(run) {
+  if (run.artifacts && run.artifacts.length) return artifactList(run.id, run.artifacts);
+  if (FINAL_RUN_STATUSES.has(run.status) === false) return "";
+  const details = el("details", {}, el("summary", {}, "files"));
+  details.addEventListener("toggle", async () => {
+    if (!details.open || details.dataset.loaded) return;
+    details.dataset.loaded = "1";
+    try {
+      const full = await request("GET", `/runs/${encodeURIComponent(run.id)}`);
+      details.append(full.artifacts.length ? artifactList(run.id, full.artifacts) : "none");
+    } catch (error) {
+      details.append(`(${error.message})`);
+    }
+  });
+  return details;
+}
+
+function artifactList(runId, artifacts) {
+  // Plots first: they are what one opens most.
+  const sorted = [...artifacts].sort((a, b) => Number(b.endsWith(".png")) - Number(a.endsWith(".png")));
+  return el("span", { class: "artifacts" }, sorted.map((path) => artifactLink(runId, path)));
+}
+
+function downloadLinks(run) {
+  if (!run.samples) return "";
+  const base = `/api/v1/runs/${encodeURIComponent(run.id)}/data?format=`;
+  return ["csv", "parquet", "mat"].map((format) =>
+    el("a", { href: base + format, download: `${run.id}.${format}`, dataset: { format } }, format.toUpperCase()),
+  );
+}
+
+// ---- fits and gap analyses ----------------------------------------------------------------------
+
+async function refreshJobs() {
+  const jobs = await request("GET", "/jobs");
+  const analyses = jobs.filter((job) => job.kind === "fit" || job.kind === "gaps").reverse();
+  $("jobs").tBodies[0].replaceChildren(...analyses.map(jobRow));
+}
+
+function jobRow(job) {
+  const progress = job.progress || {};
+  const progressText = FINAL_JOB_STATUSES.has(job.status)
+    ? ""
+    : `${Math.round((progress.fraction || 0) * 100)} % ${progress.phase || ""}`;
+  return el(
+    "tr",
+    { dataset: { id: job.id, kind: job.kind, status: job.status } },
+    el("td", {}, job.id),
+    el("td", {}, job.kind),
+    el("td", { class: `status-${job.status}`, title: job.error || "" }, job.status),
+    el("td", {}, progressText),
+    el("td", {}, job.error || resultSummary(job)),
+    el("td", {}, reportLinks(job)),
+  );
+}
+
+function resultSummary(job) {
+  const result = job.result;
+  if (!result || typeof result !== "object") return "";
+  if (job.kind === "fit" && result.fit_error) {
+    const e = result.fit_error;
+    const params = Object.keys(result.parameters || {}).length;
+    return `${e.metric}: ${fmt(e.before)} → ${fmt(e.after)} (${params} parameters)`;
+  }
+  if (job.kind === "gaps") {
+    const effects = (result.steps || []).map((s) => s.effect).join(", ") || "none";
+    return `${result.metric}: ${fmt(result.initial_gap)} → ${fmt(result.final_gap)}; effects added: ${effects}${result.verdict ? ` — ${result.verdict}` : ""}`;
+  }
+  return "";
+}
+
+/** Report files are served relative to the analysis folder: /api/v1/{fits|gaps}/{id}/files/{path}. */
+function reportLinks(job) {
+  const result = job.result;
+  if (!result || typeof result !== "object") return "";
+  const files = job.kind === "fit" ? [result.report].filter(Boolean) : result.report || [];
+  const folder = result.folder ? result.folder.replace(/\/?$/, "/") : "";
+  const collection = job.kind === "fit" ? "fits" : "gaps";
+  return files.map((path) => {
+    const relative = folder && path.startsWith(folder) ? path.slice(folder.length) : path.split("/").pop();
+    const url = `/api/v1/${collection}/${encodeURIComponent(job.id)}/files/${relative.split("/").map(encodeURIComponent).join("/")}`;
+    return el("a", { href: url, target: "_blank", rel: "noopener" }, relative);
+  });
+}
+
+async function startAnalysis(event) {
+  event.preventDefault();
+  const collection = $("analysis-kind").value;
+  const data = $("analysis-data").value.split(",").map((s) => s.trim()).filter(Boolean);
+  try {
+    await request("POST", `/${collection}`, { data, model: $("analysis-model").value.trim() });
+    showProblem($("analysis-problem"), null);
+    await refreshJobs();
+  } catch (error) {
+    showProblem($("analysis-problem"), error);
+  }
+}
+
+// ---- start --------------------------------------------------------------------------------------
+
+async function main() {
+  $("stop").addEventListener("click", stopRig);
+  $("login-form").addEventListener("submit", login);
+  $("logout").addEventListener("click", logout);
+  $("start-form").noValidate = true; // the service validates; its problem details are shown by the form
+  $("start-form").addEventListener("submit", startRun);
+  $("experiment").addEventListener("change", renderParams);
+  $("abort").addEventListener("click", abortRun);
+  $("runs-refresh").addEventListener("click", () => refreshRuns().catch(() => {}));
+  $("analysis-form").addEventListener("submit", startAnalysis);
+  whenUnauthorized((problem) => {
+    // Only a session that ended under the user is worth a message; a first visit just gets the form.
+    const wasIn = page.loggedIn;
+    closeLive();
+    showLogin(wasIn ? new ProblemError(401, { ...problem, title: "Session ended: log in again" }) : null);
+  });
+  drawPlots();
+  try {
+    await request("GET", "/rig"); // a session cookie from before may still be good
+    await enterApp();
+  } catch (error) {
+    if (!(error instanceof ProblemError && error.status === 401)) showLogin(error);
+  }
+}
+
+main();
