@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    ?= results
 
-.PHONY: install run test lint bench clean
+.PHONY: install run test lint bench clean serve
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,6 +26,11 @@ run: install
 	HDRIG_HOME="$(HOME_DIR)" $(BIN)/hdrig fit --data latest --model seed --out $(OUT)/fitted-seed.yaml \
 	  --report $(OUT)/fit-report -q
 	@echo "fitted model: $(CURDIR)/$(OUT)/fitted-seed.yaml; report: $(CURDIR)/$(OUT)/fit-report/report.md"
+
+# The REST service and browser page on the simulated rig paced to the wall clock (runs play live);
+# an admin key is printed on first start.
+serve: install
+	HDRIG_HOME="$(HOME_DIR)" $(BIN)/hdrig serve --rig configs/rigs/sim-live.yaml
 
 lint: install
 	$(BIN)/ruff check .

@@ -349,6 +349,64 @@ def cmd_gaps(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- hdrig keys and hdrig serve -------------------------------------------------------------------
+
+
+def cmd_keys_create(args: argparse.Namespace) -> int:
+    from rig.core import access
+    from rig.store import RunStore
+
+    print(access.create_key(RunStore(), args.role, args.name))  # the key alone: scripts read stdout
+    _say("hdrig: the key is shown only this once; it is stored hashed")
+    return 0
+
+
+def cmd_keys_list(args: argparse.Namespace) -> int:
+    from rig.core import access
+    from rig.store import RunStore
+
+    keys = access.list_keys(RunStore())
+    if args.json:
+        _print_json([key.model_dump(mode="json") for key in keys])
+        return 0
+    for key in keys:
+        state = f"revoked {key.revoked}" if key.revoked else "live"
+        print(f"{key.name:<24} {key.role:<9} {key.created}  {state}")
+    return 0
+
+
+def cmd_keys_revoke(args: argparse.Namespace) -> int:
+    from rig.core import access
+    from rig.store import RunStore
+
+    store = RunStore()
+    access.revoke_key(store, args.name)
+    access.audit(store, None, None, "key.revoke", args.name, "from the command line")
+    _say(f"hdrig: key {args.name} revoked")
+    return 0
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from api.app import create_app
+    from rig.config import load_rig_config
+    from rig.core import access
+    from rig.store import RunStore
+
+    config = load_rig_config(args.rig)
+    store = RunStore()
+    host = "localhost" if args.host in ("127.0.0.1", "::1") else args.host
+    if not access.has_keys(store):
+        key = access.create_key(store, access.Role.ADMIN, "admin")
+        _say(f"hdrig: no API key in {store.home}: made an admin key, shown only this once:\n    {key}")
+        _say(f"hdrig: open http://{host}:{args.port}/ and log in with it (or: Authorization: Bearer <key>)")
+    else:
+        _say(f"hdrig: serving rig {config.name} on http://{host}:{args.port}/ (store {store.home})")
+    uvicorn.run(create_app(config, store), host=args.host, port=args.port, log_level="warning")
+    return 0
+
+
 # --- parser ---------------------------------------------------------------------------------------
 
 
@@ -530,6 +588,32 @@ def build_parser() -> argparse.ArgumentParser:
     gaps.add_argument("--json", action="store_true", help="one JSON document on stdout (CONTRACT.md)")
     gaps.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     gaps.set_defaults(handler=cmd_gaps)
+
+    keys = sub.add_parser("keys", help="API keys of the service: create, list, revoke")
+    keys_sub = keys.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
+    keys_create = keys_sub.add_parser("create", help="make a key; prints only the key (shown this once)")
+    keys_create.add_argument("--role", required=True, choices=["viewer", "operator", "admin"])
+    keys_create.add_argument("--name", help="the key's name in lists and the audit log (default: ROLE-N)")
+    keys_create.set_defaults(handler=cmd_keys_create)
+    keys_list = keys_sub.add_parser("list", help="every key: name, role, created, revoked")
+    keys_list.add_argument("--json", action="store_true", help="one JSON document on stdout")
+    keys_list.set_defaults(handler=cmd_keys_list)
+    keys_revoke = keys_sub.add_parser("revoke", help="revoke a key by name")
+    keys_revoke.add_argument("name", metavar="NAME")
+    keys_revoke.set_defaults(handler=cmd_keys_revoke)
+
+    serve = sub.add_parser(
+        "serve",
+        help="the REST service and browser page for one rig",
+        description="Serve one rig over HTTP (REST API under /api/v1, the page at /). On a store without"
+        " keys an admin key is made and printed once on stderr.",
+    )
+    serve.add_argument("--rig", required=True, metavar="RIG", help="rig file, or a name in configs/rigs")
+    serve.add_argument(
+        "--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)"
+    )
+    serve.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
+    serve.set_defaults(handler=cmd_serve)
     return parser
 
 

@@ -143,6 +143,23 @@ def write_run(run: Run, path: str | os.PathLike[str]) -> Path:
     return path
 
 
+def write_columns(columns: dict[str, np.ndarray], meta: dict[str, Any], path: str | os.PathLike[str]) -> Path:
+    """Write some columns of a run (a download's selection: any columns, any rows) in the format of the
+    suffix, without the run-format check `write_run` makes (which asks for `theta_m` and two rows)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in WRITE_SUFFIXES:
+        raise RunFileError(f"{path}: unknown suffix {suffix!r}; use one of {', '.join(WRITE_SUFFIXES)}")
+    run = Run(dict(columns), dict(meta))
+    if suffix == ".parquet":
+        write_parquet(run.columns, run.meta, path)
+    elif suffix == ".csv":
+        _write_csv(run, path)
+    else:
+        _write_mat(run, path)
+    return path
+
+
 # ---- reading -------------------------------------------------------------------------------------
 
 

@@ -1,0 +1,689 @@
+"""The REST service (`hdrig serve`): routes over the application core, for one rig.
+
+A thin shell: every route calls `rig.core` (actions, the rig worker, the analysis worker, access) and
+answers with the core's documents; no experiment, fit or store logic lives here. Routes are plain
+functions, so FastAPI runs them on its thread pool and a slow disk never holds the event loop; only
+the event stream is a coroutine (it polls the worker's event log with short sleeps).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import shutil
+import tempfile
+from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, FastAPI, Header, Query, Request, Response
+from fastapi import Path as PathParam
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.background import BackgroundTask
+
+from api import auth, problems
+from api.auth import Principal, Sessions
+from api.problems import FieldError, Problem, ProblemError
+from api.schemas import (
+    AnalysisRequest,
+    FileList,
+    Health,
+    KeyRequest,
+    NewKey,
+    RigHealth,
+    RigStatus,
+    RunRequest,
+    SessionInfo,
+    SessionRequest,
+)
+from model.errors import UserInputError
+from model.params import load_model
+from rig.config import RigConfig
+from rig.core import access, actions
+from rig.core.access import AuditEntry, KeyInfo
+from rig.core.documents import ExperimentInfo, JobDocument, JobKind, JobStatus, RunDocument
+from rig.core.events import Event, EventKind
+from rig.core.worker import AnalysisWorker, Job, RigWorker, UnknownJobError
+from rig.runfile import write_columns
+from rig.status import RunStatus
+from rig.store import ARTIFACTS_DIR, EXPORT_FORMATS, RunStore
+
+API = "/api/v1"
+STATIC_DIR = Path(__file__).parent / "static"
+STREAM_KINDS = frozenset(
+    {EventKind.STATE, EventKind.PROGRESS, EventKind.SAMPLES, EventKind.ALARM, EventKind.RUN}
+)
+STREAM_POLL_S = 0.02  # the event stream's poll of the log: a live plot's latency, a negligible load
+KEEP_ALIVE_S = 10.0  # a comment line this often keeps proxies and browsers from closing a quiet stream
+REPORT_DIR = "report"
+MEDIA_TYPES = {
+    "csv": "text/csv",
+    "parquet": "application/vnd.apache.parquet",
+    "mat": "application/x-matlab-data",
+}
+
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    status: {"model": Problem, "description": problems.TITLES[status]} for status in (401, 403, 404, 409, 422)
+}
+
+Viewer = Annotated[Principal, Depends(auth.viewer)]
+Operator = Annotated[Principal, Depends(auth.operator)]
+Admin = Annotated[Principal, Depends(auth.admin)]
+RunId = Annotated[str, PathParam(description="a run id", max_length=200)]
+JobId = Annotated[str, PathParam(description="a job id", max_length=200)]
+
+
+# ---- what the routes share ------------------------------------------------------------------------
+
+
+def _worker(request: Request) -> RigWorker:
+    worker: RigWorker = request.app.state.worker
+    return worker
+
+
+def _analysis(request: Request) -> AnalysisWorker:
+    analysis: AnalysisWorker = request.app.state.analysis
+    return analysis
+
+
+def _store(request: Request) -> RunStore:
+    store: RunStore = request.app.state.store
+    return store
+
+
+def _audit(
+    request: Request, who: Principal, action: str, target: str | None, detail: str | None = None
+) -> None:
+    access.audit(_store(request), who.name, who.role, action, target, detail)
+
+
+def _owner_of(worker: RigWorker, run_id: str) -> str | None:
+    return next((job.owner for job in worker.jobs() if run_id in job.runs), None)
+
+
+def _run(request: Request, run_id: str) -> RunDocument:
+    """A run: queued or recording from the worker, else from the store (404 when unknown)."""
+    worker = _worker(request)
+    live = worker.live_run(run_id)
+    if live is not None:
+        return live
+    document = actions.run_document(_store(request), run_id)
+    document.owner = _owner_of(worker, run_id)
+    return document
+
+
+def _job(request: Request, job_id: str) -> Job:
+    for worker in (_worker(request), _analysis(request)):
+        try:
+            return worker.job(job_id)
+        except UnknownJobError:
+            continue
+    raise UnknownJobError(f"unknown job id {job_id!r}")
+
+
+def _inside(folder: Path, relative: str) -> Path:
+    """`folder/relative` if it is a file inside `folder` (no `..`, no links out), else 404."""
+    base = folder.resolve()
+    path = (base / relative).resolve()
+    if not path.is_relative_to(base) or not path.is_file():
+        raise ProblemError(404, f"no file {relative!r} here")
+    return path
+
+
+def _files(folder: Path) -> list[str]:
+    if not folder.is_dir():
+        return []
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+
+
+def _accepted(response: Response, location: str) -> None:
+    response.status_code = 202
+    response.headers["Location"] = location
+
+
+# ---- the routes -------------------------------------------------------------------------------------
+
+router = APIRouter(prefix=API, responses=ERROR_RESPONSES)
+
+
+@router.get("/health", response_model=Health, tags=["service"], summary="liveness (no key needed)")
+def health() -> Health:
+    return Health()
+
+
+@router.post("/session", response_model=SessionInfo, tags=["service"], summary="log the browser page in")
+def login(body: SessionRequest, request: Request, response: Response) -> SessionInfo:
+    found = access.authenticate(_store(request), body.key)
+    if found is None:
+        raise ProblemError(401, "the API key is unknown or revoked")
+    sessions: Sessions = request.app.state.sessions
+    token, csrf = sessions.open(body.key)
+    response.set_cookie(auth.SESSION_COOKIE, token, httponly=True, samesite="strict", path="/")
+    response.set_cookie(auth.CSRF_COOKIE, csrf, httponly=False, samesite="strict", path="/")
+    return SessionInfo(name=found[0], role=found[1], csrf=csrf)
+
+
+@router.get("/session", response_model=SessionInfo, tags=["service"], summary="who is asking")
+def whoami(who: Viewer) -> SessionInfo:
+    return SessionInfo(name=who.name, role=who.role)
+
+
+@router.delete("/session", status_code=204, tags=["service"], summary="log the browser page out")
+def logout(request: Request, who: Viewer) -> Response:
+    token = request.cookies.get(auth.SESSION_COOKIE)
+    if token:
+        sessions: Sessions = request.app.state.sessions
+        sessions.close(token)
+    response = Response(status_code=204)
+    response.delete_cookie(auth.SESSION_COOKIE, path="/")
+    response.delete_cookie(auth.CSRF_COOKIE, path="/")
+    return response
+
+
+@router.get("/rig", response_model=RigStatus, tags=["rig"], summary="the rig, its state and health")
+def rig_status(request: Request, who: Viewer) -> RigStatus:
+    worker = _worker(request)
+    config: RigConfig = worker.config
+    state = worker.rig.health()
+    jobs = worker.jobs()
+    running = next((job for job in jobs if job.status == JobStatus.RUNNING), None)
+    current = None
+    if running is not None and running.runs:
+        current = worker.live_run(running.runs[-1])
+    return RigStatus(
+        name=config.name,
+        backend=config.backend,
+        mode="sim" if worker.rig.source == "sim" else "hardware",
+        pace=config.pace if worker.rig.source == "sim" else None,
+        state=str(worker.state),
+        health=RigHealth(enabled=state.enabled, faults=list(state.faults), last_abort=state.last_abort),
+        limits=config.limits.model_dump(mode="json"),
+        sample_rate_hz=config.sample_rate_hz,
+        current_run=current,
+        queued=[job.id for job in jobs if job.status == JobStatus.QUEUED],
+    )
+
+
+@router.post(
+    "/rig/stop", response_model=RigStatus, status_code=202, tags=["rig"], summary="stop everything now"
+)
+def rig_stop(request: Request, who: Operator) -> RigStatus:
+    _worker(request).quick_stop(f"quick stop by {who.name}")
+    _audit(request, who, "stop", _worker(request).config.name)
+    return rig_status(request, who)
+
+
+@router.post("/rig/reset", response_model=RigStatus, tags=["rig"], summary="leave the faulted state")
+def rig_reset(request: Request, who: Operator) -> RigStatus:
+    _worker(request).reset()
+    _audit(request, who, "reset", _worker(request).config.name)
+    return rig_status(request, who)
+
+
+@router.get("/experiments", response_model=list[ExperimentInfo], tags=["runs"], summary="the experiments")
+def experiments(who: Viewer) -> list[ExperimentInfo]:
+    return actions.list_experiments()
+
+
+@router.get("/models", tags=["fits"], summary="the model presets a fit can start from")
+def models(who: Viewer) -> list[dict[str, Any]]:
+    return [m.as_json() for m in actions.list_models()]
+
+
+@router.post(
+    "/runs",
+    response_model=RunDocument | JobDocument,
+    status_code=202,
+    tags=["runs"],
+    summary="start an experiment (or the campaign)",
+)
+def start_run(
+    body: RunRequest, request: Request, response: Response, who: Operator
+) -> RunDocument | JobDocument:
+    try:
+        plan = actions.plan_run(body.experiment, body.params, keep_going=body.keep_going)
+    except UserInputError as exc:
+        raise _named(exc, body) from None
+    worker = _worker(request)
+    job = worker.submit(plan, owner=who.name, queue=body.queue)
+    _audit(request, who, "start", job.id, json.dumps({"experiment": body.experiment, "params": body.params}))
+    if job.kind == JobKind.RUN:
+        _accepted(response, f"{API}/runs/{job.id}")
+        return _run(request, job.id)
+    _accepted(response, f"{API}/jobs/{job.id}")
+    return job.document()
+
+
+def _named(exc: UserInputError, body: RunRequest) -> ProblemError:
+    """A plan's one-line error as a 422 naming the field (`body.params.hold_s`, `body.experiment`)."""
+    message = str(exc)
+    field = "body.experiment"
+    for name in sorted(body.params, key=len, reverse=True):
+        if f"'{name}" in message or f".{name}" in message or f"params.{name}" in message:
+            field = f"body.params.{name}"
+            break
+    else:
+        if "field '" in message:
+            inner = message.split("field '", 1)[1].split("'", 1)[0]
+            field = f"body.params.{inner}"
+    return ProblemError(422, message, [FieldError(field=field, message=message)])
+
+
+@router.get("/runs", response_model=list[RunDocument], tags=["runs"], summary="the catalog, and queued runs")
+def runs(request: Request, who: Viewer) -> list[RunDocument]:
+    worker = _worker(request)
+    owners = {run_id: job.owner for job in worker.jobs() for run_id in job.runs}
+    listed: dict[str, RunDocument] = {}
+    for document in actions.list_runs(_store(request)):
+        live = worker.live_run(document.id) if document.status == RunStatus.RUNNING else None
+        listed[document.id] = live or document
+        listed[document.id].owner = owners.get(document.id)
+    for job in worker.jobs():
+        if job.status == JobStatus.QUEUED:
+            for run_id in job.runs:
+                queued = worker.live_run(run_id)
+                if queued is not None:
+                    listed[run_id] = queued
+    return list(listed.values())
+
+
+@router.get("/runs/{run_id}", response_model=RunDocument, tags=["runs"], summary="one run")
+def run(run_id: RunId, request: Request, who: Viewer) -> RunDocument:
+    return _run(request, run_id)
+
+
+@router.post(
+    "/runs/{run_id}/abort", response_model=RunDocument, status_code=202, tags=["runs"], summary="stop a run"
+)
+def abort_run(run_id: RunId, request: Request, who: Operator) -> RunDocument:
+    worker = _worker(request)
+    job = next((j for j in worker.jobs() if run_id in j.runs and not j.status.finished), None)
+    if job is None:
+        document = _run(request, run_id)  # 404 when unknown
+        raise ProblemError(409, f"run {run_id} is {document.status}: nothing to abort")
+    worker.abort(job.id)
+    _audit(request, who, "abort", run_id)
+    return _run(request, run_id)
+
+
+@router.get(
+    "/runs/{run_id}/data",
+    tags=["runs"],
+    summary="the run's samples as a file",
+    response_class=FileResponse,
+    responses={200: {"content": {t: {} for t in MEDIA_TYPES.values()}, "description": "the samples"}},
+)
+def run_data(
+    run_id: RunId,
+    request: Request,
+    who: Viewer,
+    format: Annotated[Literal["parquet", "csv", "mat"], Query(description="file format")] = "parquet",
+    columns: Annotated[
+        str | None, Query(description="comma-separated column names (t is always included)", max_length=2000)
+    ] = None,
+    t0: Annotated[float | None, Query(description="first time to include [s]", allow_inf_nan=False)] = None,
+    t1: Annotated[float | None, Query(description="last time to include [s]", allow_inf_nan=False)] = None,
+) -> FileResponse:
+    assert format in EXPORT_FORMATS
+    _run(request, run_id)  # 404 when unknown; a dead writer's run is sealed first
+    data = _store(request).read(run_id)
+    names = list(data.columns)
+    if columns:
+        asked = [c.strip() for c in columns.split(",") if c.strip()]
+        unknown = [c for c in asked if c not in data.columns]
+        if unknown:
+            message = f"columns: no column {unknown[0]!r} in run {run_id} (it has {', '.join(names)})"
+            raise ProblemError(422, message, [FieldError(field="query.columns", message=message)])
+        names = ["t", *[c for c in dict.fromkeys(asked) if c != "t"]]
+    if t0 is not None and t1 is not None and t1 < t0:
+        message = f"t1={t1} is before t0={t0}"
+        raise ProblemError(422, message, [FieldError(field="query.t1", message=message)])
+    t = data.columns["t"]
+    keep = (t >= (t0 if t0 is not None else -float("inf"))) & (t <= (t1 if t1 is not None else float("inf")))
+    selected = {name: data.columns[name][keep] for name in names}
+    folder = Path(tempfile.mkdtemp(prefix="hdrig-download-"))
+    path = write_columns(selected, data.meta, folder / f"{run_id}.{format}")
+    return FileResponse(
+        path,
+        media_type=MEDIA_TYPES[format],
+        filename=path.name,
+        background=BackgroundTask(shutil.rmtree, folder, ignore_errors=True),
+    )
+
+
+@router.get("/runs/{run_id}/artifacts", response_model=FileList, tags=["runs"], summary="the run's artifacts")
+def run_artifacts(run_id: RunId, request: Request, who: Viewer) -> FileList:
+    _run(request, run_id)
+    return FileList(files=_files(_store(request).run_dir(run_id) / ARTIFACTS_DIR))
+
+
+@router.get(
+    "/runs/{run_id}/artifacts/{path:path}",
+    tags=["runs"],
+    summary="one artifact (a table, results.json, a plot)",
+    response_class=FileResponse,
+)
+def run_artifact(run_id: RunId, path: str, request: Request, who: Viewer) -> FileResponse:
+    _run(request, run_id)
+    return FileResponse(_inside(_store(request).run_dir(run_id) / ARTIFACTS_DIR, path))
+
+
+@router.get(
+    "/runs/{run_id}/events",
+    tags=["runs"],
+    summary="Server-Sent Events of a run: state, progress, samples, alarm, run",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"text/event-stream": {}}, "description": "the event stream"}},
+)
+def run_events(
+    run_id: RunId,
+    request: Request,
+    who: Viewer,
+    last_event_id: Annotated[
+        str | None, Header(alias="Last-Event-ID", description="resume after this event id", max_length=20)
+    ] = None,
+) -> StreamingResponse:
+    document = _run(request, run_id)  # 404 before the stream starts
+    try:
+        after = max(0, int(last_event_id)) if last_event_id else 0
+    except ValueError:
+        raise ProblemError(422, f"Last-Event-ID {last_event_id!r} is not an event id") from None
+    worker = _worker(request)
+    return StreamingResponse(
+        _event_stream(worker, run_id, after, document),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+    )
+
+
+def _sse(event_id: int, kind: str, data: dict[str, Any]) -> str:
+    return f"id: {event_id}\nevent: {kind}\ndata: {json.dumps(data, allow_nan=False, default=str)}\n\n"
+
+
+def _final(event: Event, run_id: str) -> bool:
+    return event.kind == EventKind.RUN and event.run_id == run_id and RunStatus(event.data["status"]).finished
+
+
+async def _event_stream(
+    worker: RigWorker, run_id: str, after: int, document: RunDocument
+) -> AsyncIterator[str]:
+    """The run's events newer than `after`, until its final `run` event. A client that goes away only
+    ends this generator: the run goes on."""
+    loop = asyncio.get_running_loop()
+    quiet_since = loop.time()
+    if document.status.finished and not any(
+        _final(e, run_id) for e in worker.events.since(0, run_id, limit=10**9)
+    ):
+        # Recorded before this service started (or its events have left the log): say how it ended.
+        if after < worker.events.last_id or after == 0:
+            yield _sse(worker.events.last_id, EventKind.RUN, _clean(document.as_json()))
+        return
+    while True:
+        events = worker.events.since(after, run_id)
+        for event in events:
+            after = event.id
+            if event.kind not in STREAM_KINDS:
+                continue
+            yield _sse(event.id, event.kind, _clean(event.data))
+            quiet_since = loop.time()
+            if _final(event, run_id):
+                return
+        if not events:
+            if loop.time() - quiet_since >= KEEP_ALIVE_S:
+                quiet_since = loop.time()
+                yield ": keep-alive\n\n"
+            await asyncio.sleep(STREAM_POLL_S)
+
+
+def _clean(value: Any) -> Any:
+    """JSON has no NaN or infinity: they travel as null."""
+    if isinstance(value, float):
+        return value if value == value and abs(value) != float("inf") else None
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    return value
+
+
+# ---- jobs, fits and gaps ------------------------------------------------------------------------------
+
+
+@router.get(
+    "/jobs", response_model=list[JobDocument], tags=["jobs"], summary="every job: runs, campaigns, fits, gaps"
+)
+def jobs(request: Request, who: Viewer) -> list[JobDocument]:
+    every = [*_worker(request).jobs(), *_analysis(request).jobs()]
+    return [job.document() for job in sorted(every, key=lambda job: job.created)]
+
+
+@router.get("/jobs/{job_id}", response_model=JobDocument, tags=["jobs"], summary="one job")
+def job(job_id: JobId, request: Request, who: Viewer) -> JobDocument:
+    return _job(request, job_id).document()
+
+
+def _analysis_folder(request: Request, job_id: str) -> Path:
+    return _store(request).home / actions.ANALYSES_DIR / job_id
+
+
+def _start_analysis(
+    request: Request, response: Response, who: Principal, kind: JobKind, body: AnalysisRequest
+) -> JobDocument:
+    store = _store(request)
+    try:
+        load_model(body.model)
+    except UserInputError as exc:
+        message = f"model: {exc}"
+        raise ProblemError(422, message, [FieldError(field="body.model", message=message)]) from None
+    for ref in body.data:
+        if ref != "latest":
+            store.get(ref)  # 404 naming the unknown run; files on the server are not the service's to read
+    action = actions.fit if kind == JobKind.FIT else actions.find_gaps
+    data, model = list(body.data), body.model
+
+    def work(progress: Any, job_id: str) -> Any:
+        report = _analysis_folder(request, job_id) / REPORT_DIR
+        return action(data, model, store, report_dir=report, progress=progress, analysis_id=job_id)
+
+    job = _analysis(request).submit(kind, body.model_dump(mode="json"), work, owner=who.name)
+    _audit(request, who, str(kind), job.id, json.dumps(body.model_dump(mode="json")))
+    _accepted(response, f"{API}/{'fits' if kind == JobKind.FIT else 'gaps'}/{job.id}")
+    return job.document()
+
+
+def _analysis_job(request: Request, job_id: str, kind: JobKind) -> JobDocument:
+    try:
+        found = _analysis(request).job(job_id)
+    except UnknownJobError:
+        found = None
+    if found is not None and found.kind == kind:
+        return found.document()
+    result = _analysis_folder(request, job_id) / actions.RESULT_FILE
+    if found is None and f"-{kind}-" in job_id and result.is_file():  # done before this service started
+        document = json.loads(result.read_text())
+        created = result.stat().st_mtime
+        from datetime import UTC, datetime
+
+        when = datetime.fromtimestamp(created, UTC)
+        return JobDocument(
+            id=job_id, kind=kind, status=JobStatus.COMPLETE, created=when, ended=when, result=document
+        )
+    raise ProblemError(404, f"unknown {kind} job id {job_id!r}")
+
+
+@router.post("/fits", response_model=JobDocument, status_code=202, tags=["fits"], summary="start a fit")
+def start_fit(body: AnalysisRequest, request: Request, response: Response, who: Operator) -> JobDocument:
+    return _start_analysis(request, response, who, JobKind.FIT, body)
+
+
+@router.get("/fits/{job_id}", response_model=JobDocument, tags=["fits"], summary="a fit job and its result")
+def fit_job(job_id: JobId, request: Request, who: Viewer) -> JobDocument:
+    return _analysis_job(request, job_id, JobKind.FIT)
+
+
+@router.get("/fits/{job_id}/files", response_model=FileList, tags=["fits"], summary="a fit's files")
+def fit_files(job_id: JobId, request: Request, who: Viewer) -> FileList:
+    _analysis_job(request, job_id, JobKind.FIT)
+    return FileList(files=_files(_analysis_folder(request, job_id)))
+
+
+@router.get(
+    "/fits/{job_id}/files/{path:path}",
+    response_class=FileResponse,
+    tags=["fits"],
+    summary="one file of a fit",
+)
+def fit_file(job_id: JobId, path: str, request: Request, who: Viewer) -> FileResponse:
+    _analysis_job(request, job_id, JobKind.FIT)
+    return FileResponse(_inside(_analysis_folder(request, job_id), path))
+
+
+@router.post(
+    "/gaps", response_model=JobDocument, status_code=202, tags=["gaps"], summary="start a gap analysis"
+)
+def start_gaps(body: AnalysisRequest, request: Request, response: Response, who: Operator) -> JobDocument:
+    return _start_analysis(request, response, who, JobKind.GAPS, body)
+
+
+@router.get("/gaps/{job_id}", response_model=JobDocument, tags=["gaps"], summary="a gap job and its result")
+def gaps_job(job_id: JobId, request: Request, who: Viewer) -> JobDocument:
+    return _analysis_job(request, job_id, JobKind.GAPS)
+
+
+@router.get("/gaps/{job_id}/files", response_model=FileList, tags=["gaps"], summary="a gap analysis' files")
+def gaps_files(job_id: JobId, request: Request, who: Viewer) -> FileList:
+    _analysis_job(request, job_id, JobKind.GAPS)
+    return FileList(files=_files(_analysis_folder(request, job_id)))
+
+
+@router.get(
+    "/gaps/{job_id}/files/{path:path}",
+    response_class=FileResponse,
+    tags=["gaps"],
+    summary="one file of a gap analysis",
+)
+def gaps_file(job_id: JobId, path: str, request: Request, who: Viewer) -> FileResponse:
+    _analysis_job(request, job_id, JobKind.GAPS)
+    return FileResponse(_inside(_analysis_folder(request, job_id), path))
+
+
+# ---- keys and the audit log (admin) -------------------------------------------------------------------
+
+
+@router.get("/keys", response_model=list[KeyInfo], tags=["admin"], summary="every API key (never the key)")
+def keys(request: Request, who: Admin) -> list[KeyInfo]:
+    return access.list_keys(_store(request))
+
+
+@router.post(
+    "/keys", response_model=NewKey, status_code=201, tags=["admin"], summary="make a key (shown once)"
+)
+def create_key(body: KeyRequest, request: Request, who: Admin) -> NewKey:
+    store = _store(request)
+    token = access.create_key(store, body.role, body.name)
+    name = next(found[0] for found in [access.authenticate(store, token)] if found)
+    _audit(request, who, "key.create", name, str(body.role))
+    return NewKey(name=name, role=body.role, key=token)
+
+
+@router.delete("/keys/{name}", response_model=KeyInfo, tags=["admin"], summary="revoke a key")
+def revoke_key(name: Annotated[str, PathParam(max_length=200)], request: Request, who: Admin) -> KeyInfo:
+    store = _store(request)
+    if name not in {key.name for key in access.list_keys(store)}:
+        raise ProblemError(404, f"unknown key name {name!r}")
+    info = access.revoke_key(store, name)
+    _audit(request, who, "key.revoke", name)
+    return info
+
+
+@router.get("/audit", response_model=list[AuditEntry], tags=["admin"], summary="who did what, when")
+def audit(
+    request: Request,
+    who: Admin,
+    limit: Annotated[int, Query(ge=1, le=100_000, description="newest lines")] = 1000,
+) -> list[AuditEntry]:
+    return access.audit_log(_store(request), limit)
+
+
+# ---- the application --------------------------------------------------------------------------------
+
+
+def _page() -> HTMLResponse | FileResponse:
+    index = STATIC_DIR / "index.html"
+    if index.is_file():
+        return FileResponse(index, media_type="text/html")
+    return HTMLResponse(
+        "<!doctype html><title>hdrig</title><p>hdrig: the page is not installed; the API is at"
+        " <a href='/docs'>/docs</a>.</p>"
+    )
+
+
+def create_app(rig_config: RigConfig, store: RunStore) -> FastAPI:
+    """The service for one rig: the lifespan opens the rig (RigWorker) and the analysis worker and
+    closes them at shutdown (a run still playing is quick-stopped and kept, `aborted`)."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        worker = await asyncio.to_thread(RigWorker, rig_config, store)
+        app.state.worker = worker
+        app.state.analysis = AnalysisWorker(worker.events)
+        try:
+            yield
+        finally:
+            app.state.analysis.close()
+            await asyncio.to_thread(worker.close)
+
+    app = FastAPI(
+        title="hdrig",
+        summary="Experiments, runs, fits and model gaps on one harmonic-drive test bench",
+        version="1",
+        lifespan=lifespan,
+    )
+    app.state.store = store
+    app.state.sessions = Sessions()
+    problems.install(app)
+    app.include_router(router)
+    app.add_api_route("/", _page, include_in_schema=False, response_model=None)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR, check_dir=False), name="static")
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    return app
+
+
+def _openapi(app: FastAPI) -> dict[str, Any]:
+    """FastAPI's document, with errors told as what they are: application/problem+json."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    schema = get_openapi(title=app.title, version=app.version, summary=app.summary, routes=app.routes)
+    for path in schema.get("paths", {}).values():
+        for operation in path.values():
+            for status, answer in operation.get("responses", {}).items():
+                if status.startswith(("4", "5")):
+                    answer["content"] = {
+                        problems.PROBLEM_MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/Problem"}}
+                    }
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    components.pop("HTTPValidationError", None)
+    components.pop("ValidationError", None)
+    if "Problem" not in components:
+        components["Problem"] = Problem.model_json_schema(ref_template="#/components/schemas/{model}")
+    app.openapi_schema = schema
+    return schema
+
+
+def iter_routes(app: FastAPI) -> Iterator[tuple[str, str]]:
+    """(method, path) of every route the app answers (the tests walk them all)."""
+    yield from _routes(app.routes)
+
+
+def _routes(routes: list[Any]) -> Iterator[tuple[str, str]]:
+    for route in routes:
+        included = getattr(route, "original_router", None)  # FastAPI ≥ 0.120 keeps included routers whole
+        if included is not None:
+            yield from _routes(included.routes)
+            continue
+        for method in sorted(getattr(route, "methods", None) or []):
+            if method != "HEAD":
+                yield method, route.path
