@@ -161,8 +161,14 @@ async function pollRig() {
   const rig = await request("GET", "/rig");
   renderRig(rig);
   // A run in progress that this page does not follow yet (started elsewhere, or before a reload).
-  const runId = rig.run && (rig.run.id || rig.run.run_id);
+  const run = currentRun(rig);
+  const runId = run && run.id;
   if (runId && (!page.live || page.live.runId !== runId)) followRun(runId);
+}
+
+/** The service names it `current_run` (api/schemas.py RigStatus); `run` is the older name. */
+function currentRun(rig) {
+  return rig.current_run || rig.run || null;
 }
 
 function renderRig(rig) {
@@ -196,11 +202,14 @@ function renderHealth(health) {
 }
 
 function renderRigDetails(rig) {
+  const run = currentRun(rig);
   const rows = [
-    ["backend", rig.backend],
+    ["backend", rig.backend + (rig.pace ? ` (${rig.pace})` : "")],
     ["state", rig.state],
-    ["run", rig.run ? `${rig.run.id} (${rig.run.experiment}, ${rig.run.status})` : "none"],
+    ["run", run ? `${run.id} (${run.experiment}, ${run.status})` : "none"],
   ];
+  if (rig.sample_rate_hz) rows.push(["sample rate", `${fmt(rig.sample_rate_hz)} Hz`]);
+  if (rig.queued && rig.queued.length) rows.push(["queued", rig.queued.join(", ")]);
   for (const [name, value] of Object.entries(rig.limits || {})) rows.push([`limit ${name}`, fmt(value)]);
   $("rig-details").replaceChildren(...rows.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]));
 }
@@ -208,9 +217,9 @@ function renderRigDetails(rig) {
 /** The big red button: ask the service to stop everything; never blocked by anything on the page. */
 async function stopRig() {
   try {
-    await request("POST", "/rig/stop");
+    const rig = await request("POST", "/rig/stop");
     showMessage("Stop sent: the rig is quick-stopping.");
-    pollRig().catch(() => {});
+    if (rig && rig.state) renderRig(rig); // the answer is the rig's status right after the stop
   } catch (error) {
     if (error instanceof ProblemError && error.status === 401) {
       showMessage("STOP NOT SENT: log in first (the service needs a key to move or stop the rig).", 0);
@@ -332,10 +341,15 @@ async function startRun(event) {
   const button = $("start");
   button.disabled = true;
   try {
-    const run = await request("POST", "/runs", body);
+    const answer = await request("POST", "/runs", body);
     showProblem($("start-problem"), null);
-    showMessage(`Run ${run.id} ${run.status === "queued" ? "queued" : "started"}.`);
-    followRun(run.id);
+    if (answer.kind) {
+      // A campaign answers with its job: its runs are followed one by one as the rig poll finds them.
+      showMessage(`Campaign ${answer.id} ${answer.status}.`);
+    } else {
+      showMessage(`Run ${answer.id} ${answer.status === "queued" ? "queued" : "started"}.`);
+      followRun(answer.id);
+    }
     refreshRuns().catch(() => {});
   } catch (error) {
     showProblem($("start-problem"), error);
@@ -487,7 +501,7 @@ function metricsCell(metrics) {
   return el("span", { class: "metrics", title: all }, shown.join("; ") + (entries.length > 6 ? "; …" : ""));
 }
 
-/** The artifact's path under the run's artifacts folder (the store lists absolute paths). */
+/** The artifact's path under the run's artifacts folder (a run document lists absolute paths). */
 function artifactPath(path) {
   const marker = "/artifacts/";
   const at = path.lastIndexOf(marker);
@@ -501,17 +515,17 @@ function artifactLink(runId, path) {
   return el("a", { href: url, target: "_blank", rel: "noopener", class: relative.endsWith(".png") ? "plot" : "table" }, label);
 }
 
-/** The catalog may leave artifacts out of the list: then they are fetched when the row is opened. */
+/** The catalog leaves artifacts out of the list: they are listed (GET .../artifacts) when the row is opened. */
 function artifactsCell(run) {
   if (run.artifacts && run.artifacts.length) return artifactList(run.id, run.artifacts);
-  if (FINAL_RUN_STATUSES.has(run.status) === false) return "";
+  if (!FINAL_RUN_STATUSES.has(run.status)) return ""; // artifacts are written as a run ends
   const details = el("details", {}, el("summary", {}, "files"));
   details.addEventListener("toggle", async () => {
     if (!details.open || details.dataset.loaded) return;
     details.dataset.loaded = "1";
     try {
-      const full = await request("GET", `/runs/${encodeURIComponent(run.id)}`);
-      details.append(full.artifacts.length ? artifactList(run.id, full.artifacts) : "none");
+      const { files } = await request("GET", `/runs/${encodeURIComponent(run.id)}/artifacts`);
+      details.append(files.length ? artifactList(run.id, files) : "none");
     } catch (error) {
       details.append(`(${error.message})`);
     }
