@@ -17,6 +17,7 @@ import re
 import shutil
 import socket
 import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
@@ -30,7 +31,7 @@ import yaml
 from rig.experiments import EXPERIMENTS
 
 ROOT = Path(__file__).resolve().parents[1]
-HDRIG = ROOT / ".venv" / "bin" / "hdrig"
+HDRIG = Path(sys.executable).with_name("hdrig")  # the command of the venv running the tests
 CHROMIUM = os.environ.get("HDRIG_CHROMIUM", "/usr/bin/chromium")
 # As the lab machines run it: no sandbox (root in CI), and nothing that phones out of a closed network.
 CHROMIUM_ARGS = [

@@ -75,6 +75,12 @@ function fmt(value) {
   return String(value);
 }
 
+/** "aborted" + "aborted: quick stop" → "aborted: quick stop", not the word twice. */
+function prefixed(word, text) {
+  if (!text) return word;
+  return text.startsWith(word) ? text : `${word}: ${text}`;
+}
+
 function formatSeconds(s) {
   if (s === null || s === undefined || !Number.isFinite(s)) return "";
   if (s < 90) return `${Math.round(s)} s`;
@@ -192,7 +198,7 @@ function renderState(state) {
 
 function renderHealth(health) {
   const faults = health.faults || [];
-  const ok = health.enabled !== false && faults.length === 0;
+  const ok = faults.length === 0; // a disabled drive at rest is normal (a quick stop disables it)
   const parts = [health.enabled ? "drive enabled" : "drive disabled"];
   if (faults.length) parts.push(`faults: ${faults.map(fmt).join(", ")}`);
   if (health.last_abort) parts.push(`last abort: ${fmt(health.last_abort)}`);
@@ -433,7 +439,7 @@ function renderProgress({ fraction, phase, eta_s: eta }) {
 /** Alarms stay on screen (red, on top of the live section) until the next run is followed. */
 function showAlarm({ alarm, why }) {
   const box = $("alarms");
-  box.append(el("p", { dataset: { alarm } }, `⚠ ${alarm}${why ? `: ${why}` : ""}`));
+  box.append(el("p", { dataset: { alarm } }, `⚠ ${prefixed(alarm, why)}`));
   box.hidden = false;
 }
 
@@ -447,7 +453,7 @@ function onRunDocument(run) {
     $("abort").hidden = true;
     const fraction = status === "complete" ? 1 : $("progress").value;
     renderProgress({ fraction, phase: status, eta_s: null }); // no ETA once it has ended
-    if (run.reason) showMessage(`Run ${run.id} ${status}: ${run.reason}`, 0);
+    if (run.reason) showMessage(`Run ${run.id} ${prefixed(status, run.reason)}`, 0);
     refreshRuns().catch(() => {});
     refreshJobs().catch(() => {});
   }
