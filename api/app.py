@@ -66,7 +66,8 @@ MEDIA_TYPES = {
 }
 
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
-    status: {"model": Problem, "description": problems.TITLES[status]} for status in (401, 403, 404, 409, 422)
+    status: {"model": Problem, "description": problems.TITLES[status]}
+    for status in (400, 401, 403, 404, 409, 422)
 }
 
 Viewer = Annotated[Principal, Depends(auth.viewer)]
