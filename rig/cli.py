@@ -1,7 +1,9 @@
-"""The `hdrig` command line (docs/INTERFACE.md). A thin shell: each command parses, calls the core, prints.
+"""The `hdrig` command line (docs/INTERFACE.md): argument parsing and printing over the core (`rig.core`).
 
-Errors a user can cause end as one line on stderr and exit status 2; anything else is a bug and
-keeps its traceback. `--json` output is one JSON document on stdout; logs and progress go to stderr.
+Errors a user can cause end as one line on stderr and exit status 2; a device fault or a safety trip
+ends the run `aborted: <fault>` and exits 3; anything else is a bug and keeps its traceback. `--json`
+output is one JSON document on stdout, exactly the document the service returns; logs and progress go
+to stderr.
 """
 
 from __future__ import annotations
@@ -15,15 +17,22 @@ from typing import TYPE_CHECKING, Any, NoReturn
 
 from model.errors import UserInputError
 from model.inputs import KINDS
-from model.params import PRESET_DIR, HarmonicDriveModel, load_model, preset_names
+from model.params import PRESET_DIR, HarmonicDriveModel, load_model
+from rig.core import actions
+from rig.faults import DeviceFault
+from rig.status import RunStatus
 
 if TYPE_CHECKING:
-    from rig.runner import RunOutcome
+    from rig.core.documents import RunDocument
+    from rig.core.worker import Job, RigWorker
+    from rig.progress import ProgressBar
 
 Handler = Callable[[argparse.Namespace], int]
 
 CAMPAIGN = "campaign"
+EXIT_BAD_INPUT = 2
 EXIT_ABORTED = 3
+EXIT_INTERRUPTED = 130
 METRICS_SHOWN = 6  # metrics on a run's one-line summary; `hdrig runs show` prints them all
 
 
@@ -40,17 +49,13 @@ def _print_json(data: Any) -> None:
 
 
 def cmd_model_list(args: argparse.Namespace) -> int:
-    rows: list[dict[str, Any]] = []
-    for name in preset_names():
-        model = load_model(name)
-        rows.append({"name": name, "effects": model.effects, "description": model.description})
+    rows = actions.list_models()
     if args.json:
-        _print_json(rows)
+        _print_json([row.as_json() for row in rows])
         return 0
-    width = max((len(r["name"]) for r in rows), default=4)
+    width = max((len(r.name) for r in rows), default=4)
     for row in rows:
-        summary = row["description"].split(". ")[0][:90]
-        print(f"{row['name']:<{width}}  {summary}")
+        print(f"{row.name:<{width}}  {row.description.split('. ')[0][:90]}")
     _say(f"presets live in {PRESET_DIR}")
     return 0
 
@@ -71,11 +76,10 @@ def _describe(model: HarmonicDriveModel) -> list[str]:
 
 
 def cmd_model_show(args: argparse.Namespace) -> int:
-    model = load_model(args.model)
     if args.json:
-        _print_json(model.to_dict())
+        _print_json(actions.show_model(args.model))
     else:
-        print("\n".join(_describe(model)))
+        print("\n".join(_describe(load_model(args.model))))
     return 0
 
 
@@ -111,99 +115,97 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 # --- hdrig run -----------------------------------------------------------------------------------
 
 
-def _run_overrides(experiment: str, pairs: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """`--set` pairs per experiment, validated against each experiment's parameters before anything runs.
-
-    A single experiment takes `key=value`; the campaign takes `experiment.key=value`.
-    """
-    from rig.experiments import CAMPAIGN_ORDER, EXPERIMENTS
-    from rig.runner import make_params, parse_overrides
-
-    if experiment != CAMPAIGN:
-        grouped = {experiment: list(pairs)}
-    else:
-        grouped = {}
-        for pair in pairs:
-            name, dot, _ = pair.partition("=")[0].partition(".")
-            if not dot or name not in CAMPAIGN_ORDER:
-                raise UserInputError(
-                    f"run campaign: --set {pair!r} must be EXPERIMENT.key=value,"
-                    f" EXPERIMENT one of {', '.join(CAMPAIGN_ORDER)}"
-                )
-            grouped.setdefault(name, []).append(pair[len(name) + 1 :])
-    overrides = {name: parse_overrides(name, group) for name, group in grouped.items()}
-    for name, values in overrides.items():
-        make_params(EXPERIMENTS[name], values)
-    return overrides
-
-
-def _summary(outcome: RunOutcome, samples: int) -> str:
+def _summary(run: RunDocument) -> str:
     """One line: id, experiment, status or abort reason, samples, key metrics, where to look."""
-    from rig.store import ARTIFACTS_DIR
-
-    parts = [outcome.run_id, outcome.experiment, outcome.reason or outcome.status, f"{samples} samples"]
-    shown = list(outcome.metrics.items())[:METRICS_SHOWN]
+    parts = [run.id, run.experiment, run.reason or run.status, f"{run.samples} samples"]
+    shown = list(run.metrics.items())[:METRICS_SHOWN]
     if shown:
-        more = len(outcome.metrics) - len(shown)
+        more = len(run.metrics) - len(shown)
         parts.append(
             " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in shown)
             + (f" (+{more} more)" if more else "")
         )
-    if outcome.run_dir is not None:
-        if outcome.status == "complete":
-            parts.append(f"results: {outcome.run_dir / ARTIFACTS_DIR}")
+    if run.run_dir is not None:
+        if run.status == RunStatus.COMPLETE:
+            parts.append(f"results: {Path(run.run_dir) / 'artifacts'}")
         else:
-            parts.append(f"data: {outcome.run_dir}")
+            parts.append(f"data: {run.run_dir}")
     return "  ".join(parts)
 
 
-def _print_params(name: str, experiments: dict[str, Any]) -> None:
-    names = list(experiments) if name == CAMPAIGN else [name]
-    for experiment in names:
-        print(f"{experiment}: {experiments[experiment].summary}")
-        for key, info in experiments[experiment].Params.model_fields.items():
-            print(f"  {key:<24} {info.default!s:<28} {info.description or ''}")
+def _print_params(name: str) -> None:
+    for info in actions.list_experiments():
+        if name not in (CAMPAIGN, info.name):
+            continue
+        print(f"{info.name}: {info.summary}")
+        for key, spec in info.params_schema.get("properties", {}).items():
+            default = spec.get("default", "")
+            print(f"  {key:<24} {default!s:<28} {spec.get('description', '')}")
+
+
+def _follow(worker: RigWorker, job: Job, bar: ProgressBar, landed: Callable[[RunDocument], None]) -> None:
+    """Draw the job's progress and print each run as it lands, from the worker's events, until it ends."""
+    from rig.core.documents import RunDocument
+    from rig.core.events import EventKind
+
+    seen = 0
+    while True:
+        finished = job.done.is_set()  # read before the events, so none published before the end is missed
+        for event in worker.events.since(seen):
+            seen = event.id
+            if event.job_id != job.id:
+                continue
+            if event.kind == EventKind.PROGRESS:
+                bar(str(event.data["phase"]), float(event.data["fraction"]))
+            elif event.kind == EventKind.RUN and RunStatus(event.data["status"]).finished:
+                landed(RunDocument.model_validate(event.data))
+        if finished:
+            return
+        worker.events.wait(seen, timeout_s=0.5)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     from rig.config import load_rig_config
-    from rig.experiments import EXPERIMENTS
+    from rig.core.worker import RigWorker
     from rig.progress import ProgressBar
-    from rig.runner import outcome_json, run_campaign, run_experiment
+    from rig.realtime import quiet_heap
     from rig.store import RunStore
 
     name: str = args.experiment
-    if name != CAMPAIGN and name not in EXPERIMENTS:
-        known = ", ".join([*EXPERIMENTS, CAMPAIGN])
-        raise UserInputError(f"unknown experiment {name!r} (experiments: {known})")
+    if name != CAMPAIGN:
+        actions.experiment_named(name)
     if args.params:
-        _print_params(name, EXPERIMENTS)
+        _print_params(name)
         return 0
     if args.rig is None:
         raise UserInputError(f"run {name}: --rig RIG is required (a rig file, or a name in configs/rigs)")
     config = load_rig_config(args.rig)
-    overrides = _run_overrides(name, args.set)
-    store = RunStore()
+    plan = actions.plan_run(name, actions.params_from_pairs(name, args.set), keep_going=args.keep_going)
+    runs: list[RunDocument] = []
+    with ProgressBar(enabled=not args.quiet) as bar, RigWorker(config, RunStore()) as worker, quiet_heap():
 
-    outcomes: list[RunOutcome] = []
-    with ProgressBar(enabled=not args.quiet) as bar:
-
-        def landed(outcome: RunOutcome) -> None:
-            outcomes.append(outcome)
+        def landed(run: RunDocument) -> None:
+            runs.append(run)
             if not args.json:
-                bar.write(_summary(outcome, store.get(outcome.run_id)["samples"]))
+                bar.write(_summary(run))
 
-        if name == CAMPAIGN:
-            run_campaign(config, overrides, store, bar, on_outcome=landed, keep_going=args.keep_going)
-        else:
-            landed(run_experiment(name, config, overrides[name], store, bar))
-
+        job = worker.submit(plan)
+        try:
+            _follow(worker, job, bar, landed)
+        except KeyboardInterrupt:
+            worker.quick_stop("Ctrl-C")  # the motor first; the run then ends `aborted` with its data
+            job.done.wait()
+            _follow(worker, job, bar, landed)
+            _say(f"hdrig: interrupted; quick stop; run {job.runs[-1] if job.runs else '-'} kept")
+            return EXIT_INTERRUPTED
+    if job.exception is not None and not (runs and isinstance(job.exception, DeviceFault)):
+        raise job.exception  # bad input found late, a fault before any run, or a bug (its traceback)
     if args.json:
-        data = [outcome_json(o) for o in outcomes]
+        data = [run.as_json() for run in runs]
         _print_json(data if name == CAMPAIGN else data[0])
-    aborted = [o for o in outcomes if o.status != "complete"]
-    for outcome in aborted:
-        _say(f"hdrig: run {outcome.run_id} {outcome.reason or outcome.status}")
+    aborted = [run for run in runs if run.status != RunStatus.COMPLETE]
+    for run in aborted:
+        _say(f"hdrig: run {run.id} {run.reason or run.status}")
     return EXIT_ABORTED if aborted else 0
 
 
@@ -214,66 +216,55 @@ def cmd_runs_list(args: argparse.Namespace) -> int:
     from rig.store import RunStore
 
     store = RunStore()
-    runs = store.list_runs()
+    runs = actions.list_runs(store)
     if args.json:
-        _print_json(runs)
+        _print_json([run.as_json() for run in runs])
         return 0
     if not runs:
         _say(f"no runs in {store.home}")
         return 0
     header = {"id": "id", "experiment": "experiment", "status": "status", "started": "started (UTC)"}
     rows = [
-        {"id": r["id"], "experiment": r["experiment"], "status": r["status"], "started": r["started"][:19]}
+        {"id": r.id, "experiment": r.experiment, "status": str(r.status), "started": (r.started or "")[:19]}
         for r in runs
     ]
     width = {key: max(len(row[key]) for row in [header, *rows]) for key in header}
     for row, run in zip([header, *rows], [None, *runs], strict=True):
         cells = "  ".join(f"{row[key]:<{width[key]}}" for key in header)
-        samples = "samples" if run is None else str(run["samples"])
-        reason = "" if run is None or not run["reason"] else f"  {run['reason']}"
+        samples = "samples" if run is None else str(run.samples)
+        reason = "" if run is None or not run.reason else f"  {run.reason}"
         print(f"{cells}  {samples:>8}{reason}")
     _say(f"{len(runs)} run{'s' if len(runs) != 1 else ''} in {store.home}")
     return 0
 
 
-def _artifacts(run_dir: Path) -> list[Path]:
-    from rig.store import ARTIFACTS_DIR
-
-    folder = run_dir / ARTIFACTS_DIR
-    return sorted(p for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else []
-
-
 def cmd_runs_show(args: argparse.Namespace) -> int:
     from rig.store import RunStore
 
-    store = RunStore()
-    entry = store.get(args.run)
-    run_dir = store.run_dir(args.run)
-    entry["run_dir"] = str(run_dir)
-    entry["artifacts"] = [str(p) for p in _artifacts(run_dir)]
+    run = actions.run_document(RunStore(), args.run)
     if args.json:
-        _print_json(entry)
+        _print_json(run.as_json())
         return 0
-    model = f"{entry['model_name']} ({entry['model_hash']})" if entry["model_name"] else "-"
+    model = f"{run.model_name} ({run.model_hash})" if run.model_name else "-"
     fields = {
-        "id": entry["id"],
-        "experiment": entry["experiment"],
-        "rig": entry["rig"],
+        "id": run.id,
+        "experiment": run.experiment,
+        "rig": run.rig,
         "model": model,
-        "status": entry["status"],
-        "reason": entry["reason"] or "-",
-        "started": entry["started"],
-        "ended": entry["ended"] or "-",
-        "samples": entry["samples"],
-        "data": entry["path"],
+        "status": run.status,
+        "reason": run.reason or "-",
+        "started": run.started,
+        "ended": run.ended or "-",
+        "samples": run.samples,
+        "data": run.path,
     }
     for key, value in fields.items():
         print(f"{key:<11} {value}")
-    print("metrics:" + ("" if entry["metrics"] else " none"))
-    for key, value in entry["metrics"].items():
+    print("metrics:" + ("" if run.metrics else " none"))
+    for key, value in run.metrics.items():
         print(f"  {key:<28} {value}")
-    print("artifacts:" + ("" if entry["artifacts"] else " none"))
-    for path in entry["artifacts"]:
+    print("artifacts:" + ("" if run.artifacts else " none"))
+    for path in run.artifacts:
         print(f"  {path}")
     return 0
 
@@ -281,62 +272,46 @@ def cmd_runs_show(args: argparse.Namespace) -> int:
 def cmd_runs_export(args: argparse.Namespace) -> int:
     from rig.store import RunStore
 
-    store = RunStore()
-    store.get(args.run)  # an unknown id is told as such; a run whose writer died is sealed first
-    path = store.export(args.run, args.format, args.out)
+    path = actions.export_run(RunStore(), args.run, args.format, args.out)
     _say(f"wrote run {args.run} to {path}")
     return 0
 
 
-# --- hdrig fit -----------------------------------------------------------------------------------
+# --- hdrig fit, hdrig gaps -----------------------------------------------------------------------
+
+
+def _analysis(args: argparse.Namespace, action: Callable[..., Any], **options: Any) -> Any:
+    """Run fit or gaps over the store with a progress bar; the action's document."""
+    from rig.progress import ProgressBar
+    from rig.store import RunStore
+
+    with ProgressBar(enabled=not args.quiet) as bar:
+        return action(
+            args.data, args.model, RunStore(), out=args.out, report_dir=args.report, progress=bar, **options
+        )
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from rig.identify import identify, save_identified
-    from rig.progress import ProgressBar
-    from rig.store import load_runs
-
-    start = load_model(args.model)
-    runs = load_runs(args.data)
-    with ProgressBar(enabled=not args.quiet) as bar:
-        result = identify(runs, start, joint=not args.no_joint, report_dir=args.report, progress=bar)
-    save_identified(result, Path(args.out))
+    result = _analysis(args, actions.fit, joint=not args.no_joint)
     if args.json:
         _print_json(result.as_json())
         return 0
-    width = max(len(row.name) for row in result.parameters)
-    for row in result.parameters:
+    width = max(len(name) for name in result.parameters)
+    for name, row in result.parameters.items():
         sigma = f"± {row.uncertainty:.3g}" if row.uncertainty is not None else "not determined"
         note = f"  ({row.note})" if row.note and not row.identifiable else ""
-        print(f"{row.name:<{width}}  {row.estimate:>12.6g}  {sigma:<16} {row.stage}{note}")
-    print(f"fit error: {result.fit_error_before:.4g} → {result.fit_error_after:.4g}")
+        print(f"{name:<{width}}  {row.estimate:>12.6g}  {sigma:<16} {row.stage}{note}")
+    print(f"fit error: {result.fit_error.before:.4g} → {result.fit_error.after:.4g}")
     print(f"model: {result.model_file}")
-    if result.report_file is not None:
-        print(f"report: {result.report_file}")
+    if result.report is not None:
+        print(f"report: {result.report}")
     return 0
 
 
-# --- hdrig gaps ----------------------------------------------------------------------------------
-
-
 def cmd_gaps(args: argparse.Namespace) -> int:
-    from model.gaps import find_gaps
-    from model.params import save_model
-    from rig.progress import ProgressBar
-    from rig.store import load_runs
-
-    model = load_model(args.model)
-    runs = load_runs(args.data)
-    with ProgressBar(enabled=not args.quiet) as bar:
-        result = find_gaps(runs, model, report_dir=args.report, progress=bar, model_out=args.out)
-    if result.final_model is None and result.steps:
-        result.final_model = save_model(result.model, Path(f"{model.name}-gaps.yaml"))
-    elif result.final_model is None:  # nothing added: the given model is the one that explains the data
-        result.final_model = (
-            Path(args.model) if Path(args.model).exists() else PRESET_DIR / f"{args.model}.yaml"
-        )
+    result = _analysis(args, actions.find_gaps)
     if args.json:
-        _print_json(result.to_json())
+        _print_json(result.as_json())
         return 0
     print(result.verdict)
     for number, step in enumerate(result.steps, 1):
@@ -442,8 +417,9 @@ instead (an object for one experiment, a list for the campaign). A progress bar 
 when stderr is a terminal.
 
 Exit status: 0 every run complete; 2 bad input (unknown experiment or rig file, bad --set, a set-point
-the rig refuses); 3 a run aborted (safety envelope breached or quick stop): its data are kept, the
-reason is on stderr; 130 interrupted (Ctrl-C)."""
+the rig refuses); 3 a run aborted (safety envelope breached, a device fault, or a quick stop): its
+data are kept, the reason is on stderr; 130 interrupted (Ctrl-C: the rig quick-stops and the run ends
+`aborted` with its data)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -582,8 +558,8 @@ def build_parser() -> argparse.ArgumentParser:
     gaps.add_argument(
         "--out",
         metavar="FILE",
-        help="model file with the effects added (default: DIR/model.yaml with --report,"
-        " else ./<model>-gaps.yaml)",
+        help="model file with the effects added (default: model.yaml in the analysis' folder,"
+        " $HDRIG_HOME/analyses/<id>/)",
     )
     gaps.add_argument("--json", action="store_true", help="one JSON document on stdout (CONTRACT.md)")
     gaps.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -633,10 +609,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return handler(args)
     except UserInputError as exc:
         print(f"hdrig: error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
+    except DeviceFault as exc:
+        print(f"hdrig: aborted: {exc}", file=sys.stderr)
+        return EXIT_ABORTED
     except KeyboardInterrupt:
         print("hdrig: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

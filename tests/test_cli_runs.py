@@ -276,30 +276,41 @@ def test_aborted_run_json_says_aborted_and_exits_3(tmp_path: Path) -> None:
 # ---- crash safety: a SIGKILLed run is listed interrupted, its data readable -----------------------
 
 
-def test_killed_run_is_listed_interrupted_with_its_samples(tmp_path: Path) -> None:
+def start_realtime_sweep(tmp_path: Path, *options: str, **popen: Any) -> tuple[subprocess.Popen[str], Path]:
+    """`hdrig run speed-sweep` on a realtime copy of the sim rig (~18 s of wall time); (process, home)."""
     config = yaml.safe_load((RIG_DIR / "sim.yaml").read_text())
-    config["pace"] = "realtime"  # the sweep then takes ~18 s of wall time
+    config["pace"] = "realtime"
     rig_file = tmp_path / "realtime.yaml"
     rig_file.write_text(yaml.safe_dump(config))
     home = tmp_path / "home"
     child = subprocess.Popen(
-        [sys.executable, "-m", "rig", "run", "speed-sweep", "--rig", str(rig_file)],
+        [sys.executable, "-m", "rig", "run", "speed-sweep", "--rig", str(rig_file), *options],
         env={**os.environ, "HDRIG_HOME": str(home)},
         cwd=REPO_ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        text=True,
+        **popen,
     )
+    return child, home
+
+
+def wait_for_flushed_samples(child: subprocess.Popen[str], home: Path, samples: int = 1000) -> int:
+    """Wait until `samples` are on disk (the writer flushes every second), no earlier than 2.5 s after
+    the start; give up after 60 s (a loaded machine starts slowly). The samples flushed."""
+    started = time.monotonic()
+    flushed = 0
+    while time.monotonic() - started < 60 and (flushed < samples or time.monotonic() - started < 2.5):
+        time.sleep(0.1)
+        if (home / "catalog.sqlite").exists():
+            flushed = max((r["samples"] for r in RunStore(home).list_runs()), default=0)
+    assert child.poll() is None, "the realtime run ended before it could be stopped"
+    assert flushed >= samples, f"{samples} samples did not reach the store within 60 s"
+    return flushed
+
+
+def test_killed_run_is_listed_interrupted_with_its_samples(tmp_path: Path) -> None:
+    child, home = start_realtime_sweep(tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        # Kill once at least a second of samples is on disk (the writer flushes every second), but no
-        # earlier than 2.5 s after the start; give up after 30 s (a loaded machine starts slowly).
-        started = time.monotonic()
-        flushed = 0
-        while time.monotonic() - started < 30 and (flushed < 1000 or time.monotonic() - started < 2.5):
-            time.sleep(0.1)
-            if (home / "catalog.sqlite").exists():
-                flushed = max((r["samples"] for r in RunStore(home).list_runs()), default=0)
-        assert child.poll() is None, "the realtime run ended before it could be killed"
-        assert flushed >= 1000, "no second of samples reached the store within 30 s"
+        flushed = wait_for_flushed_samples(child, home)
         child.send_signal(signal.SIGKILL)
         child.wait(timeout=10)
     finally:
@@ -315,3 +326,24 @@ def test_killed_run_is_listed_interrupted_with_its_samples(tmp_path: Path) -> No
     run = read_run(out)
     assert len(run) == entry["samples"]
     assert np.all(np.diff(run.t) > 0)
+
+
+# ---- Ctrl-C: the rig quick-stops, the run ends aborted with its data -------------------------------
+
+
+def test_ctrl_c_quick_stops_and_leaves_the_run_aborted_with_its_data(tmp_path: Path) -> None:
+    child, home = start_realtime_sweep(tmp_path, "-q", stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        flushed = wait_for_flushed_samples(child, home)
+        child.send_signal(signal.SIGINT)
+        _, stderr = child.communicate(timeout=60)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+
+    assert child.returncode == 130, stderr
+    (entry,) = runs_json(home)
+    assert entry["status"] == "aborted" and entry["reason"] == "aborted: quick stop requested"
+    assert entry["samples"] >= flushed and len(RunStore(home).read(entry["id"])) == entry["samples"]
+    assert f"run {entry['id']} kept" in stderr
