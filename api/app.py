@@ -110,6 +110,8 @@ def _run(request: Request, run_id: str) -> RunDocument:
     worker = _worker(request)
     live = worker.live_run(run_id)
     if live is not None:
+        if live.status == RunStatus.RUNNING:  # the worker knows the progress, the store what is on disk
+            live.samples = _store(request).get(run_id)["samples"]
         return live
     document = actions.run_document(_store(request), run_id)
     document.owner = _owner_of(worker, run_id)
@@ -280,6 +282,8 @@ def runs(request: Request, who: Viewer) -> list[RunDocument]:
     listed: dict[str, RunDocument] = {}
     for document in actions.list_runs(_store(request)):
         live = worker.live_run(document.id) if document.status == RunStatus.RUNNING else None
+        if live is not None:
+            live.samples = document.samples
         listed[document.id] = live or document
         listed[document.id].owner = owners.get(document.id)
     for job in worker.jobs():
