@@ -50,7 +50,7 @@ from drivers.cia402 import (
 from drivers.pdo_layout import od_variable
 from model.errors import UserInputError
 from rig.config import RigConfig
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from rig.interface import ControlMode
 
 logger = logging.getLogger(__name__)
@@ -78,7 +78,7 @@ class DriveSettingError(UserInputError):
     one line naming the node, the object and the drive's abort code."""
 
 
-class CanopenServoError(DeviceFault):
+class CanopenServoError(DeviceFaultError):
     """The drive failed while working: it faulted, went silent, or did not reach a state or mode."""
 
 

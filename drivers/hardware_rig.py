@@ -33,7 +33,7 @@ The rig does not touch the garbage collector, whose full collections would stall
 
 Every cycle the rig envelope is checked (`rig.safety.envelope_breach`) with the measured values, and
 the chunk ends at the first breach. A drive that faults or leaves OPERATION ENABLED on its own, or
-goes silent, is stopped at once and its rows are kept; the fault (a `RigFault`, one line with its EMCYs)
+goes silent, is stopped at once and its rows are kept; the fault (a `RigFaultError`, one line with its EMCYs)
 is raised at the rig's next call, which `run_segment` makes straight away. What the rig file asks and
 the bench cannot do (a voltage segment, a load torque, a field the drive refuses) is a `RigError` or
 another `UserInputError`, raised before anything moves.
@@ -59,8 +59,8 @@ from drivers.daq_protocol import STATUS_CAP_RANGE, STATUS_ENCODER_FAULT, Decoder
 from drivers.serial_daq import DEFAULT_BAUDRATE, DaqError, SampleBlock, SerialDaq
 from model.errors import UserInputError, describe_validation_error
 from rig.config import RigConfig
-from rig.faults import DeviceFault
-from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, RigError, RigFault, Segment
+from rig.faults import DeviceFaultError
+from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, RigError, RigFaultError, Segment
 from rig.safety import NO_ABORT, envelope_breach, limits_vector
 
 logger = logging.getLogger(__name__)
@@ -294,7 +294,7 @@ class HardwareRig(Rig):
         self._sample_clock = sample_clock
         self._epoch_s = time.monotonic()
         self._lim = limits_vector(config.limits, self.constants.gear_ratio)
-        self._pending_error: RigFault | None = None
+        self._pending_error: RigFaultError | None = None
         self._cycling: threading.Thread | None = None  # the thread inside _run_cycles, if any
         self._streaming = False
         self._daq_samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # device time, θ_l, θ_m
@@ -387,9 +387,9 @@ class HardwareRig(Rig):
             self._enter_mode(mode)
             rows, t_sync, code = self._cycle_through(setpoint, tau_ext)
             self._fill_theta_l(rows, t_sync)
-        except DeviceFault as exc:
+        except DeviceFaultError as exc:
             self._quick_stop()
-            raise RigFault(f"rig {self.config.name!r}: {exc}") from exc
+            raise RigFaultError(f"rig {self.config.name!r}: {exc}") from exc
         except BaseException:  # a refused setting, a bug: still no torque left behind
             self._quick_stop()
             raise
@@ -473,7 +473,7 @@ class HardwareRig(Rig):
         """Stop the drive now; the error ends the segment at the next call, after the rows so far (the
         DAQ streams on to align them, and stops with the rig's quick stop or close)."""
         self.servo.quick_stop()
-        self._pending_error = RigFault(f"rig {self.config.name!r}: {what}")
+        self._pending_error = RigFaultError(f"rig {self.config.name!r}: {what}")
 
     def _raise_pending(self) -> None:
         error, self._pending_error = self._pending_error, None

@@ -41,7 +41,7 @@ from drivers.daq_protocol import (
     command_line,
 )
 from model.errors import UserInputError
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 
 DEFAULT_BAUDRATE = 921_600
 POLL_S = 0.0005
@@ -57,7 +57,7 @@ class DaqConfigError(UserInputError):
     """The port does not open, or the board refuses a setting as a bad argument; names port and command."""
 
 
-class DaqError(DeviceFault):
+class DaqError(DeviceFaultError):
     """The DAQ board or its line failed while working; the message names the port and the command."""
 
 

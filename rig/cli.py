@@ -19,7 +19,7 @@ from model.errors import UserInputError
 from model.inputs import KINDS
 from model.params import PRESET_DIR, HarmonicDriveModel, load_model
 from rig.core import actions
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from rig.status import RunStatus
 
 if TYPE_CHECKING:
@@ -198,7 +198,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             _follow(worker, job, bar, landed)
             _say(f"hdrig: interrupted; quick stop; run {job.runs[-1] if job.runs else '-'} kept")
             return EXIT_INTERRUPTED
-    if job.exception is not None and not (runs and isinstance(job.exception, DeviceFault)):
+    if job.exception is not None and not (runs and isinstance(job.exception, DeviceFaultError)):
         raise job.exception  # bad input found late, a fault before any run, or a bug (its traceback)
     if args.json:
         data = [run.as_json() for run in runs]
@@ -361,10 +361,14 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
     return 0
 
 
+SERVICE_MODULE = "api.app"
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
+    import importlib
+
     import uvicorn
 
-    from api.app import create_app
     from rig.config import load_rig_config
     from rig.core import access
     from rig.store import RunStore
@@ -378,7 +382,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         _say(f"hdrig: open http://{host}:{args.port}/ and log in with it (or: Authorization: Bearer <key>)")
     else:
         _say(f"hdrig: serving rig {config.name} on http://{host}:{args.port}/ (store {store.home})")
-    uvicorn.run(create_app(config, store), host=args.host, port=args.port, log_level="warning")
+    # The service sits above the rig (api imports rig.core): found by name, as the backends are.
+    service = importlib.import_module(SERVICE_MODULE)
+    uvicorn.run(service.create_app(config, store), host=args.host, port=args.port, log_level="warning")
     return 0
 
 
@@ -610,7 +616,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except UserInputError as exc:
         print(f"hdrig: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except DeviceFault as exc:
+    except DeviceFaultError as exc:
         print(f"hdrig: aborted: {exc}", file=sys.stderr)
         return EXIT_ABORTED
     except KeyboardInterrupt:

@@ -22,7 +22,7 @@ import numpy as np
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RigConfig
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from rig.safety import ABORT_REASONS, NO_ABORT
 
 
@@ -47,7 +47,7 @@ class RigError(UserInputError):
     it has not, an unknown backend. The user can fix it in the experiment or the rig file."""
 
 
-class RigFault(DeviceFault):
+class RigFaultError(DeviceFaultError):
     """The bench failed during a segment (a drive fault, a silent drive or DAQ); the rig has quick-stopped
     and the rows up to the fault have reached the sink."""
 
@@ -150,7 +150,7 @@ class Rig(ABC):
         up to and including the breaching one have already reached the sink). `quick_stop()` from
         another thread ends the segment the same way, and so does one that came before the segment
         (between two segments, or an earlier abort): nothing moves until `enable()`. A device fault
-        (`DeviceFault`) quick-stops the rig, is kept as its last abort, and is raised.
+        (`DeviceFaultError`) quick-stops the rig, is kept as its last abort, and is raised.
         """
         if self._stop_requested.is_set():
             return self._abort(SegmentResult(0, "aborted: quick stop requested"))
@@ -168,7 +168,7 @@ class Rig(ABC):
                 block, code = self._run_cycles(
                     segment.mode, segment.setpoint[done : done + n], tau[done : done + n]
                 )
-            except DeviceFault as fault:
+            except DeviceFaultError as fault:
                 self._abort(SegmentResult(done, f"aborted: {fault}"))
                 raise
             got = len(block["t"])

@@ -4,7 +4,7 @@ Flow: open the rig named by the config → enable → a short settle segment to 
 the experiment's program, segment by segment, each block of samples appended to the store as it comes
 (flushed at least once a second) → on a breach the run is finished `aborted: <reason>` with its data →
 otherwise `complete`, then the analysis writes tables, plots and metrics beside the run. A device fault
-(`rig.faults.DeviceFault`) mid-run quick-stops the rig and ends the run `aborted: <fault>`, data kept.
+(`rig.faults.DeviceFaultError`) mid-run quick-stops the rig and ends the run `aborted: <fault>`, data kept.
 
 The application core (`rig.core`) calls this for the command line and the service alike.
 """
@@ -24,7 +24,7 @@ from model.errors import UserInputError, describe_validation_error
 from rig.config import RigConfig
 from rig.experiments import CAMPAIGN_ORDER, experiment_named
 from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, open_rig
 from rig.runfile import json_text
 from rig.status import RunStatus
@@ -174,7 +174,7 @@ def _play(
         fault = None
         try:
             reason, ctx = _record(experiment, params, rig, writer, sink, progress, hooks)
-        except DeviceFault as exc:
+        except DeviceFaultError as exc:
             rig.quick_stop()  # first the motor, then the bookkeeping
             fault = str(exc)
             reason = f"aborted: {fault}"

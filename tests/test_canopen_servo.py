@@ -30,7 +30,7 @@ from hdrig_testing.can_bus import bus_settings_for_test
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from rig.interface import ControlMode
 from sim_backend.cia402_twin import Cia402Twin
 
@@ -277,13 +277,13 @@ def test_configure_while_enabled_is_a_bug_of_the_caller(bench: Bench) -> None:
     bench.enabled_in(OperationMode.CYCLIC_SYNC_VELOCITY)
     with pytest.raises(RuntimeError, match="disable the drive") as info:
         bench.servo.configure(OperationMode.CYCLIC_SYNC_TORQUE)
-    assert not isinstance(info.value, DeviceFault | UserInputError)  # neither the drive nor the user
+    assert not isinstance(info.value, DeviceFaultError | UserInputError)  # neither the drive nor the user
 
 
 def test_a_voltage_mode_is_refused_as_bad_input(bench: Bench) -> None:
     with pytest.raises(DriveSettingError, match="no voltage mode") as info:
         bench.servo.configure(ControlMode.VOLTAGE)
-    assert isinstance(info.value, UserInputError) and not isinstance(info.value, DeviceFault)
+    assert isinstance(info.value, UserInputError) and not isinstance(info.value, DeviceFaultError)
 
 
 # --- faults, stops, silence -----------------------------------------------------------------------
@@ -313,7 +313,7 @@ def test_enable_refuses_a_faulted_drive(bench: Bench) -> None:
     bench.servo.cycle(200.0)
     with pytest.raises(DriveFaultError, match="EMCY 0x8611") as info:
         bench.servo.enable()
-    assert isinstance(info.value, DeviceFault) and not isinstance(info.value, UserInputError)
+    assert isinstance(info.value, DeviceFaultError) and not isinstance(info.value, UserInputError)
 
 
 def test_reset_fault_brings_the_drive_back(bench: Bench) -> None:
@@ -375,7 +375,7 @@ def test_a_silent_drive_times_out_and_is_reported(make_bench: BenchFactory) -> N
     bench.twin.close()
     with pytest.raises(SyncTimeoutError) as info:
         bench.servo.cycle(0.0)
-    assert isinstance(info.value, DeviceFault) and not isinstance(info.value, UserInputError)
+    assert isinstance(info.value, DeviceFaultError) and not isinstance(info.value, UserInputError)
     time.sleep(0.08)
     assert any(f.startswith("drive heartbeat lost") for f in bench.servo.faults())
 

@@ -18,7 +18,7 @@ import yaml
 
 from model.errors import UserInputError
 from rig.config import RIG_DIR, RigConfig
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from rig.interface import Block, ControlMode, Rig, RigError, Segment, SegmentResult, open_rig
 from sim_backend.inprocess import SimRig
 
@@ -155,7 +155,7 @@ def test_no_motion_after_an_abort_until_enabled_again() -> None:
 def test_a_segment_on_a_rig_never_enabled_is_a_bug_of_the_caller() -> None:
     with open_rig(sim_config()) as rig, pytest.raises(RuntimeError, match="not enabled") as info:
         rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(10)), Recorder())
-    assert not isinstance(info.value, DeviceFault | UserInputError)
+    assert not isinstance(info.value, DeviceFaultError | UserInputError)
 
 
 def test_a_quick_stop_between_two_segments_ends_the_next_one_before_it_moves() -> None:

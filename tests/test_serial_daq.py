@@ -35,7 +35,7 @@ from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from model.plant import Plant
 from rig.config import Sensors
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from sim_backend.daq_twin import DaqTwin
 
 needs_pty = pytest.mark.skipif(not hasattr(os, "openpty"), reason="no pseudo-terminals on this platform")
@@ -267,7 +267,7 @@ def test_a_bad_argument_refused_is_bad_input_naming_the_port_and_the_command() -
         DaqConfigError, match=r"^DAQ on scripted: 'RATE 1500' refused: ERR 2 rate 1500 Hz"
     ) as info:
         daq.set_rate(1500)
-    assert isinstance(info.value, UserInputError) and not isinstance(info.value, DeviceFault)
+    assert isinstance(info.value, UserInputError) and not isinstance(info.value, DeviceFaultError)
 
 
 def test_another_refusal_is_a_device_fault() -> None:
@@ -280,7 +280,7 @@ def test_no_reply_is_a_device_fault_naming_the_port_the_command_and_the_wait() -
     daq = scripted((b"#1 ID?\n", b""), timeout_s=0.05)
     with pytest.raises(DaqError, match=r"^DAQ on scripted: no reply to 'ID\?' within 0.05 s$") as info:
         daq.identify()
-    assert isinstance(info.value, DeviceFault) and not isinstance(info.value, UserInputError)
+    assert isinstance(info.value, DeviceFaultError) and not isinstance(info.value, UserInputError)
 
 
 def test_a_late_reply_to_an_earlier_command_is_not_taken_for_the_current_one() -> None:
@@ -301,7 +301,7 @@ def test_unexpected_reply_text_raises_daq_error() -> None:
 def test_a_serial_url_that_does_not_open_is_bad_input_naming_it() -> None:
     with pytest.raises(DaqConfigError, match=r"^DAQ on /dev/no-such-daq: cannot open the port") as info:
         SerialDaq("/dev/no-such-daq")
-    assert isinstance(info.value, UserInputError) and not isinstance(info.value, DeviceFault)
+    assert isinstance(info.value, UserInputError) and not isinstance(info.value, DeviceFaultError)
 
 
 def test_a_port_that_fails_while_reading_raises_daq_error_naming_it() -> None:

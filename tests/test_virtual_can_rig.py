@@ -31,8 +31,8 @@ from hdrig_testing.can_bus import bus_settings_for_test
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig, load_rig_config
-from rig.faults import DeviceFault
-from rig.interface import ControlMode, Rig, RigError, RigFault, Segment, open_rig
+from rig.faults import DeviceFaultError
+from rig.interface import ControlMode, Rig, RigError, RigFaultError, Segment, open_rig
 from rig.runner import run_experiment
 from rig.store import RunStore
 from sim_backend.cia402_twin import Cia402Twin
@@ -312,7 +312,7 @@ def test_a_drive_fault_the_host_does_not_see_ends_the_segment_after_its_rows(
     rig = make_bench_rig({"velocity_rad_s": 50.0})  # the drive trips at 50 rad/s, the host at 700
     rig.enable()
     blocks: list[dict[str, np.ndarray]] = []
-    with pytest.raises(RigFault, match=r"drive left OPERATION ENABLED: FAULT \(EMCY 0x8400"):
+    with pytest.raises(RigFaultError, match=r"drive left OPERATION ENABLED: FAULT \(EMCY 0x8400"):
         rig.run_segment(Segment(ControlMode.VELOCITY, np.full(500, 100.0)), blocks.append)
     speeds = np.concatenate([b["omega_m"] for b in blocks])
     assert speeds[-1] > 50.0 and np.all(speeds[:-1] <= 50.0)  # every row up to the tripping one
@@ -321,7 +321,7 @@ def test_a_drive_fault_the_host_does_not_see_ends_the_segment_after_its_rows(
 def test_a_drive_emcy_mid_segment_is_a_device_fault_not_bad_input(make_bench_rig: BenchRigFactory) -> None:
     rig = make_bench_rig({"velocity_rad_s": 50.0})
     rig.enable()
-    with pytest.raises(DeviceFault, match="EMCY 0x8400") as info:
+    with pytest.raises(DeviceFaultError, match="EMCY 0x8400") as info:
         rig.run_segment(Segment(ControlMode.VELOCITY, np.full(500, 100.0)), lambda block: None)
     health = rig.health()
     assert not isinstance(info.value, UserInputError)

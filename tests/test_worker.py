@@ -24,7 +24,7 @@ from rig.core.worker import (
     RigWorker,
     WorkerState,
 )
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from rig.interface import Block, ControlMode
 from rig.status import RunStatus
 from rig.store import RunStore
@@ -152,13 +152,13 @@ class FaultingRig(SimRig):
 
     def _run_cycles(self, mode: ControlMode, setpoint: np.ndarray, tau_ext: np.ndarray) -> tuple[Block, int]:
         if self.t_s * self.config.sample_rate_hz >= self.fault_after:
-            raise DeviceFault("node 1: EMCY 0x7300 (sensor fault)")
+            raise DeviceFaultError("node 1: EMCY 0x7300 (sensor fault)")
         return super()._run_cycles(mode, setpoint, tau_ext)
 
 
 def test_a_device_fault_mid_run_ends_it_aborted_with_its_data_not_as_bad_input(store: RunStore) -> None:
     config = sim_config()
-    assert not issubclass(DeviceFault, UserInputError)
+    assert not issubclass(DeviceFaultError, UserInputError)
     with RigWorker(config, store, rig=FaultingRig(config)) as worker:
         job = worker.wait(worker.submit(plan_run("speed-sweep")).id, WAIT_S)
         assert job.status == JobStatus.ABORTED

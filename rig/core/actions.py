@@ -37,7 +37,7 @@ from rig.core.documents import (
     RunPlan,
 )
 from rig.experiments import CAMPAIGN, CAMPAIGN_ORDER, EXPERIMENTS, experiment_named
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from rig.interface import Rig
 from rig.runfile import json_text
 from rig.runner import Progress, RunHooks, RunOutcome, make_params, run_experiment
@@ -163,7 +163,7 @@ def execute_plan(
         if on_run is not None:
             on_run(document)
         if outcome.fault is not None:
-            raise DeviceFault(outcome.fault)
+            raise DeviceFaultError(outcome.fault)
         if outcome.status == RunStatus.ABORTED and not plan.keep_going:
             break
     return documents

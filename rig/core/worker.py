@@ -29,7 +29,7 @@ from rig.config import RigConfig
 from rig.core.actions import execute_plan, reserve_run_id
 from rig.core.documents import JobDocument, JobKind, JobStatus, Progress, RunDocument, RunPlan
 from rig.core.events import EventKind, EventLog
-from rig.faults import DeviceFault
+from rig.faults import DeviceFaultError
 from rig.interface import Block, ControlMode, Rig, Segment, open_rig
 from rig.runner import RunHooks
 from rig.status import RunStatus
@@ -235,7 +235,7 @@ class _JobThread:
                 job.status = self._status_of(job)
             except UserInputError as exc:  # found only once the job ran (a file, a run id...)
                 job.status, job.error, job.exception = JobStatus.FAILED, str(exc), exc
-            except DeviceFault as exc:
+            except DeviceFaultError as exc:
                 job.status, job.error, job.exception = JobStatus.ABORTED, f"aborted: {exc}", exc
                 if job.result is None:
                     job.result = list(job.partial)
@@ -260,7 +260,7 @@ class _JobThread:
     def _after(self, job: Job) -> None:
         return None
 
-    def _faulted(self, job: Job, fault: DeviceFault) -> None:
+    def _faulted(self, job: Job, fault: DeviceFaultError) -> None:
         return None
 
     def _status_of(self, job: Job) -> JobStatus:
@@ -443,7 +443,7 @@ class RigWorker(_JobThread):
             self._live.clear()
             self._wake.notify_all()
 
-    def _faulted(self, job: Job, fault: DeviceFault) -> None:
+    def _faulted(self, job: Job, fault: DeviceFaultError) -> None:
         self.rig.quick_stop()  # the runner has stopped it already; a fault before any run has not
         self.events.publish(EventKind.ALARM, {"alarm": "device_fault", "why": str(fault)}, job_id=job.id)
         with self._lock:
