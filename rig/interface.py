@@ -3,12 +3,15 @@ virtual bus — is a `Rig`; nothing above this module knows which one it has.
 
 As python-can's `BusABC` does for `recv`, the public `run_segment` does the shared work (checking the
 segment against the envelope, chunking, handing blocks to the sink, quick-stopping on a breach) and
-calls one small hook, `_run_cycles`, that each backend implements. Backends register under the
-`backend:` name of a rig config (`register_backend`), never through `if` chains.
+calls one small hook, `_run_cycles`, that each backend implements. A rig config's `backend:` name finds
+its backend in a table of module paths imported when named (`BUILTIN_BACKENDS`) or in the entry points
+of `hdrig.backends`, never through `if` chains, and this module imports none of them.
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.metadata
 import math
 import threading
 from abc import ABC, abstractmethod
@@ -279,28 +282,55 @@ class Rig(ABC):
                 )
 
 
-RigFactory = Callable[[RigConfig], Rig]
-_BACKENDS: dict[str, RigFactory] = {}
+BUILTIN_BACKENDS = {
+    "sim": "sim_backend.inprocess:SimRig",
+    "virtual-can": "sim_backend.virtual_bus:VirtualCanRig",
+    "canopen": "drivers.hardware_rig:HardwareRig",
+}
+"""A rig config's `backend:` name → "module:Class", imported only when a config names it (python-can's
+`BACKENDS` table): `rig` imports no backend, and a backend's CAN or serial stack loads only when used."""
+
+ENTRY_POINT_GROUP = "hdrig.backends"
+"""Where a lab's own backend is found without editing hdrig: in its package's metadata,
+`[project.entry-points."hdrig.backends"] my-bench = "my_lab.bench:MyBenchRig"`. The entry point's name is
+the `backend:` name; a built-in name wins over an entry point of the same name."""
 
 
-def register_backend(name: str, factory: RigFactory) -> None:
-    """Make a backend available under a rig config's `backend:` name."""
-    _BACKENDS[name] = factory
+def backend_names() -> list[str]:
+    """Every backend a rig config may name: the built-in ones and those installed as entry points."""
+    return sorted({*BUILTIN_BACKENDS, *(ep.name for ep in _entry_points())})
+
+
+def backend_class(name: str) -> type[Rig]:
+    """The class of the backend called `name`, imported now; RigError naming the known ones if none is."""
+    target = BUILTIN_BACKENDS.get(name)
+    if target is None:
+        target = next((ep.value for ep in _entry_points() if ep.name == name), None)
+    if target is None:
+        raise RigError(f"unknown backend {name!r} (backends: {', '.join(backend_names())})")
+    module_name, _, class_name = target.partition(":")
+    # A backend that fails to import is a bug or a broken install, not a user's mistake: not caught.
+    found = getattr(importlib.import_module(module_name), class_name)
+    if not (isinstance(found, type) and issubclass(found, Rig)):
+        raise TypeError(f"backend {name!r}: {target} is not a Rig subclass")
+    return found
+
+
+def _entry_points() -> importlib.metadata.EntryPoints:
+    return importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)
 
 
 def open_rig(config: RigConfig) -> Rig:
     """The backend a rig config names, constructed on it."""
-    _load_builtin_backends()
     try:
-        factory = _BACKENDS[config.backend]
-    except KeyError:
-        known = ", ".join(sorted(_BACKENDS))
-        raise RigError(
-            f"rig {config.name!r}: unknown backend {config.backend!r} (backends: {known})"
-        ) from None
-    return factory(config)
+        cls = backend_class(config.backend)
+    except RigError as error:
+        raise RigError(f"rig {config.name!r}: {error}") from None
+    return cls(config)
 
 
-def _load_builtin_backends() -> None:
-    # Importing a backend package registers it; imported here so that `rig` does not depend on them.
-    import sim_backend  # noqa: F401
+def open_simulated_rig(config: RigConfig, model: HarmonicDriveModel, theta_m: float = 0.0) -> Rig:
+    """The in-process simulated rig (`sim`) on `config`'s settings, running `model` (an object, not a
+    file) from motor angle `theta_m` [rad]: what validation replays a measured run on."""
+    simulated: Callable[..., Rig] = backend_class("sim")
+    return simulated(config.model_copy(update={"backend": "sim"}), model=model, theta_m=theta_m)

@@ -16,10 +16,14 @@ from sim_backend.simulated_drive import SimulatedDrive
 class SimRig(Rig):
     """`backend: sim`. Virtual time runs as fast as the compiled loop goes; realtime sleeps to match."""
 
-    def __init__(self, config: RigConfig, model: HarmonicDriveModel | None = None) -> None:
+    def __init__(
+        self, config: RigConfig, model: HarmonicDriveModel | None = None, theta_m: float = 0.0
+    ) -> None:
+        """`model` overrides the config's `model:` file; `theta_m` is the motor angle it starts at [rad]."""
         super().__init__(config)
         self.model: HarmonicDriveModel = model if model is not None else load_model(config.model or "seed")
         self.plant = Plant(self.model)
+        self.plant.reset(theta_m=theta_m)
         self.drive = SimulatedDrive(self.plant, config)
         self._wall_start: float | None = None
 
