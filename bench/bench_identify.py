@@ -14,7 +14,7 @@ import time
 from model.fit.parameters import get_values, with_values
 from model.params import load_model
 from rig.config import load_rig_config
-from rig.identify import identify
+from rig.identification import identify
 from rig.runner import run_campaign
 from rig.store import RunStore
 

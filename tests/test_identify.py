@@ -20,7 +20,7 @@ from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel, load_model
 from model.run import Run
 from rig.config import load_rig_config
-from rig.identify import identify
+from rig.identification import identify
 from rig.runner import run_campaign
 from rig.store import RunStore
 

@@ -1,1 +1,3 @@
-"""Identification: fitting model parameters to runs (staged estimates, joint refinement, uncertainty)."""
+"""Least squares of model parameters on runs: parameter names and values (`parameters`), and the
+trajectory (shooting) fit with its uncertainty (`trajectory`). The staged identification that reads the
+experiments' analyses lives above, in `rig.identification`."""

@@ -2,8 +2,9 @@
 
 Each stage is a pure function of runs (model.run.Run with their metadata) and the current model, and
 returns `Solved`: values with covariance-based standard errors and notes. Which parameters are then
-believed, and the bookkeeping of the model, is `model.fit.staged`'s business. This module also holds the
-small tools all stages share (least squares with standard errors, a run's context, window averages).
+believed, and the bookkeeping of the model, is `rig.identification.staged`'s business. This module also
+holds the small tools all stages share (least squares with standard errors, a run's context, window
+averages).
 
 The steady windows of `speed-sweep` and `load-variation` are the experiments' own: every average over
 them is taken by `rig.experiments.speed_sweep.friction_table`, which averages K_m·i_a over each

@@ -1,7 +1,7 @@
 """Staged identification, motor friction: against position, against velocity, and at breakaway.
 
 Pure functions of runs and the current model, each returning `Solved` (values, standard errors, notes);
-`model.fit.staged` decides what to believe. The model's own friction (`Plant.steady_friction`,
+`rig.identification.staged` decides what to believe. The model's own friction (`Plant.steady_friction`,
 `Plant.breakaway_friction`) is evaluated for every sample, so every law and effect the kernel knows is
 fitted with the kernel's equations, not a second copy of them.
 """
@@ -16,7 +16,12 @@ import numpy as np
 
 from model import kernel as k
 from model.errors import UserInputError
-from model.fit.dynamics_stage import (
+from model.fit.parameters import get_values, with_values
+from model.params import N_FOURIER, HarmonicDriveModel
+from model.plant import Plant
+from model.run import Run
+from rig.experiments.position_friction import fourier_basis, quadratic_fourier_fit, steady_samples
+from rig.identification.dynamics_stage import (
     Solved,
     SweepPart,
     context,
@@ -27,11 +32,6 @@ from model.fit.dynamics_stage import (
     nonlinear_fit,
     spring_torque,
 )
-from model.fit.parameters import get_values, with_values
-from model.params import N_FOURIER, HarmonicDriveModel
-from model.plant import Plant
-from model.run import Run
-from rig.experiments.position_friction import fourier_basis, quadratic_fourier_fit, steady_samples
 
 MIN_STUCK_S = 0.02
 """Shortest span of an unchanged motor encoder reading that counts as stuck [s]."""

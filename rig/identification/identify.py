@@ -16,11 +16,11 @@ import numpy as np
 
 from model.errors import UserInputError
 from model.fit.parameters import get_values
-from model.fit.staged import staged_estimates
 from model.fit.trajectory import TrajectoryProblem, fit_trajectories
 from model.params import HarmonicDriveModel, save_model
 from model.run import Run
-from rig.validation import ValidationReport, validate
+from rig.identification.staged import staged_estimates
+from rig.identification.validation import ValidationReport, validate
 
 JOINT_CANDIDATES = ("s3", "k_v", "static_factor", "K_s", "J_m", "J_l", "f_cl", "b_l", "R", "K_b")
 """Parameters the joint refinement may move (when the staged fit found them determined): those that

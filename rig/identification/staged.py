@@ -31,7 +31,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from model.errors import UserInputError
-from model.fit.dynamics_stage import (
+from model.fit.parameters import get_values, with_values
+from model.params import HarmonicDriveModel
+from model.plant import Plant
+from model.run import Run
+from rig.identification.dynamics_stage import (
     Solved,
     frequency_response,
     kinematic_error,
@@ -42,17 +46,13 @@ from model.fit.dynamics_stage import (
     stiffness_names,
     sweep_parts,
 )
-from model.fit.friction_stage import (
+from rig.identification.friction_stage import (
     FOURIER_NAMES,
     breakaway,
     position_friction,
     velocity_friction,
     velocity_names,
 )
-from model.fit.parameters import get_values, with_values
-from model.params import HarmonicDriveModel
-from model.plant import Plant
-from model.run import Run
 
 ROUNDS = 2
 """Passes over the coupled stages (mechanics; position ↔ velocity friction): the second settles them."""

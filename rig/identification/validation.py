@@ -20,6 +20,7 @@ from model.run import Run
 from rig.experiments import EXPERIMENTS
 from rig.experiments.base import Results, RigContext, context_from_run
 from rig.experiments.plots import new_figure, save_figure
+from rig.interface import open_simulated_rig
 from rig.runner import make_params, run_experiment
 from rig.store import RunStore
 
@@ -96,15 +97,12 @@ class ValidationReport:
 
 def _replay_experiment(run: Run, model: HarmonicDriveModel, store: RunStore) -> tuple[Run, RigContext]:
     """The same experiment, same parameters, on a simulated rig running `model`; its run and context."""
-    from sim_backend.inprocess import SimRig  # a simulated rig is what validation needs, whatever measured
-
     name = str(run.meta["experiment"])
     ctx = context_from_run(run, f"run {run.meta.get('run_id', name)}")
     config = ctx.config.model_copy(update={"pace": "virtual", "model": None})
-    rig = SimRig(config, model=model)
-    # Start where the measurement started, so position-dependent friction meets the same positions.
-    rig.plant.reset(theta_m=float(run["theta_m"][0]))
-    rig.drive.reset_loops()
+    # A simulated rig whatever measured; it starts where the measurement started, so position-dependent
+    # friction meets the same positions.
+    rig = open_simulated_rig(config, model, theta_m=float(run["theta_m"][0]))
     outcome = run_experiment(name, config, dict(run.meta.get("params", {})), store, rig=rig)
     if outcome.status != "complete":
         raise UserInputError(

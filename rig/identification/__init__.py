@@ -1,0 +1,17 @@
+"""Identification: a model fitted to the campaign's runs, then judged against them.
+
+It sits beside the experiments that made the runs, because it reads them through the experiments' own
+analyses (steady windows, FRFs, segment labels) and replays validation runs on a simulated rig:
+
+- `staged`, `dynamics_stage`, `friction_stage`: one MODEL.md equation per stage, by least squares on
+  the runs, to a starting point with standard errors;
+- `identify`: the staged estimates, the joint refinement on trajectories (`model.fit.trajectory`),
+  the report; what `hdrig fit` and the service call;
+- `validation`: the article's validation table, model beside measurement.
+
+The pure least squares on runs (`model.fit.parameters`, `model.fit.trajectory`) stays in `model`.
+"""
+
+from rig.identification.identify import Identification, ParameterRow, identify, save_identified
+
+__all__ = ["Identification", "ParameterRow", "identify", "save_identified"]
