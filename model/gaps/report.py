@@ -6,18 +6,17 @@
 - `step<N>-<effect>.png` (or `residual.png` when nothing was added): the residual before and after,
   against time, speed, motor angle and direction, on the channel the effect was seen in.
 - `window.png`: the worst shooting window of the first model, measured vs simulated before and after.
+
+Figures use matplotlib's object-oriented API (`Figure` + `savefig`), not pyplot: saving to a file needs no
+GUI backend, so importing this module leaves a notebook's backend alone.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")  # no display on services or CI
-
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from model import kernel as k
 from model.gaps.locate import ANGLE_BINS, CHANNEL_UNITS, SPEED_EDGES, Where, locate
@@ -35,7 +34,8 @@ def _where(model: HarmonicDriveModel, signals: list[Signals], channel: str, dt_s
 
 
 def _panels(title: str, wheres: dict[str, Where], path: Path) -> Path:
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7))
+    fig = Figure(figsize=(11, 7))
+    axes = fig.subplots(2, 2)
     unit = CHANNEL_UNITS[next(iter(wheres.values())).channel]
     labels = [f"{SPEED_EDGES[i]:g}–{SPEED_EDGES[i + 1]:g}" for i in range(len(SPEED_EDGES) - 1)]
     angles = (np.arange(ANGLE_BINS) + 0.5) * 360 / ANGLE_BINS
@@ -58,7 +58,6 @@ def _panels(title: str, wheres: dict[str, Where], path: Path) -> Path:
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return path
 
 
@@ -67,7 +66,8 @@ def _gaps_plot(result: GapsResult, path: Path) -> Path:
     every = [result.initial_gap] + [s.gap_after for s in result.steps]
     held = [result.held_out_initial] + [s.held_out_after for s in result.steps]
     x = np.arange(len(names))
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig = Figure(figsize=(8, 4.5))
+    ax = fig.subplots()
     ax.bar(x - 0.2, every, 0.4, label="all windows")
     ax.bar(x + 0.2, held, 0.4, label="held-out windows")
     ax.set_yscale("log")
@@ -77,7 +77,6 @@ def _gaps_plot(result: GapsResult, path: Path) -> Path:
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return path
 
 
@@ -86,7 +85,8 @@ def _window_plot(result: GapsResult, shooting: Shooting, path: Path) -> Path:
     errors = shooting.errors(first, shooting.everything)
     worst = int(np.argmax([float(np.sum(e**2)) for e in errors]))
     w = shooting.windows[worst]
-    fig, ax = plt.subplots(figsize=(8, 4.5))
+    fig = Figure(figsize=(8, 4.5))
+    ax = fig.subplots()
     ax.plot(w.run.t, w.theta_m, "k.", label="measured", markersize=4)
     for label, model in (("model given", first), ("model with the effects", result.model)):
         rows = replay_rows(Plant(model), w.run, shooting.signals[w.signals].mode, shooting.dt_s, w.clock_s)
@@ -96,7 +96,6 @@ def _window_plot(result: GapsResult, shooting: Shooting, path: Path) -> Path:
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return path
 
 
