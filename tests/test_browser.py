@@ -218,4 +218,13 @@ def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, s
     run = service.get(f"/api/v1/runs/{run_id}")
     assert isinstance(run, dict)
     assert run["status"] == "aborted"
+
+    # The next run starts clean: the last stop's alarm belongs to the last run, not to this one.
+    page.click("#start")
+    expect(page.locator("#live-run")).not_to_have_text(run_id, timeout=10_000)
+    expect(page.locator("#live-received")).not_to_have_text("0", timeout=FIRST_POINTS_S * 1000)
+    expect(page.locator("#alarms")).to_be_hidden()
+    page.click("#stop")
+    expect(page.locator("#live-status")).to_have_text("aborted", timeout=STOP_S * 1000)
+    expect(page.locator("#alarms")).to_contain_text("quick_stop")
     assert page_errors == []

@@ -371,7 +371,9 @@ function followRun(runId) {
   closeLive();
   const window = new RollingWindow(["t", ...PLOTS.map((p) => p.column)], WINDOW_S);
   const source = new EventSource(`/api/v1/runs/${encodeURIComponent(runId)}/events`);
-  page.live = { runId, source, window };
+  // `begun`: this run's own first `run` event has arrived. A stream read from its start also carries the
+  // rig-wide events logged before the run began (earlier stops, states): history, not this run's alarms.
+  page.live = { runId, source, window, begun: false };
   $("live-run").textContent = runId;
   $("live-status").textContent = "";
   $("live-status").dataset.status = "";
@@ -386,10 +388,11 @@ function followRun(runId) {
     source.addEventListener(kind, (message) => {
       if (page.live && page.live.source === source) handler(JSON.parse(message.data));
     });
-  on("state", (data) => renderState(data.state));
+  const afterBegin = (handler) => (data) => page.live.begun && handler(data);
+  on("state", afterBegin((data) => renderState(data.state)));
   on("progress", renderProgress);
   on("samples", onSamples);
-  on("alarm", showAlarm);
+  on("alarm", afterBegin(showAlarm));
   on("run", onRunDocument);
   source.onerror = () => {
     // CLOSED: the service refused the stream (401, 404...): it will not retry, the rig poll goes on.
@@ -444,6 +447,8 @@ function showAlarm({ alarm, why }) {
 }
 
 function onRunDocument(run) {
+  if (run.id !== page.live.runId) return;
+  page.live.begun = true;
   const status = run.status;
   $("live-status").textContent = status;
   $("live-status").dataset.status = status;
