@@ -35,7 +35,7 @@ serve: install
 lint: install
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/mypy
+	$(BIN)/mypy && $(BIN)/lint-imports
 
 test: lint
 	$(BIN)/pytest -q
