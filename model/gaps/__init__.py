@@ -3,7 +3,7 @@ effect from the docs/MODEL.md vocabulary, add it, show the gap shrink.
 
     from model.gaps import find_gaps
     result = find_gaps([run], model, report_dir="gaps-report")
-    result.to_json()  # docs/INTERFACE.md's `hdrig gaps --json` document
+    result.steps, result.final_gap  # rig.core.actions.gaps_document(result) is the `--json` document
 """
 
 from model.gaps.shooting import METRIC

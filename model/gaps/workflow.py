@@ -21,7 +21,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from model.errors import UserInputError
 from model.fit.parameters import get_values
@@ -83,7 +82,7 @@ class GapStep:
 
 @dataclass
 class GapsResult:
-    """What the workflow found; `to_json()` is docs/INTERFACE.md's document, the rest feeds the report."""
+    """What the workflow found (`rig.core.actions.gaps_document` makes the `--json` document of it)."""
 
     metric: str
     initial_gap: float
@@ -96,25 +95,6 @@ class GapsResult:
     verdict: str  # one line: what was found, or that the model explains the data
     last_trials: list[Trial] = field(default_factory=list)  # the step that found nothing
     report: list[Path] = field(default_factory=list)
-
-    def to_json(self) -> dict[str, Any]:
-        """docs/INTERFACE.md's `hdrig gaps --json` document."""
-        return {
-            "metric": self.metric,
-            "initial_gap": self.initial_gap,
-            "steps": [
-                {
-                    "effect": s.effect,
-                    "gap_before": s.gap_before,
-                    "gap_after": s.gap_after,
-                    "evidence": s.evidence,
-                    "parameters": s.parameters,
-                }
-                for s in self.steps
-            ],
-            "final_gap": self.final_gap,
-            "final_model": None if self.final_model is None else str(self.final_model),
-        }
 
 
 def _determined(fit: EffectFit, own: list[str], min_t_ratio: float) -> bool:

@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
@@ -43,6 +43,10 @@ from rig.runfile import json_text
 from rig.runner import Progress, RunHooks, RunOutcome, make_params, run_experiment
 from rig.status import RunStatus
 from rig.store import ARTIFACTS_DIR, RunStore, load_runs, new_run_id
+
+if TYPE_CHECKING:
+    from model.gaps import GapsResult
+    from rig.identification import Identification
 
 ANALYSES_DIR = "analyses"
 RESULT_FILE = "result.json"
@@ -259,7 +263,6 @@ def fit(
 ) -> FitDocument:
     """Identify the model's parameters from runs (store ids, files or `latest`); see the module doc."""
     from rig.identification import identify, save_identified
-    from rig.identification.identify import FIT_METRIC
 
     start = load_model(model)
     runs = _runs_for(data, store)
@@ -267,25 +270,7 @@ def fit(
     report = Path(report_dir) if report_dir is not None else None
     result = identify(runs, start, joint=joint, report_dir=report, progress=progress)
     save_identified(result, Path(out) if out is not None else folder / MODEL_FILE)
-    document = FitDocument(
-        model_file=str(result.model_file),
-        parameters={
-            row.name: FitParameter(
-                estimate=row.estimate,
-                uncertainty=row.uncertainty,
-                start=row.start,
-                identifiable=row.identifiable,
-                stage=row.stage,
-                note=row.note,
-            )
-            for row in result.parameters
-        },
-        fit_error=FitError(metric=FIT_METRIC, before=result.fit_error_before, after=result.fit_error_after),
-        validation=result.validation.as_json() if result.validation else None,
-        report=str(result.report_file) if result.report_file else None,
-        notes=list(result.notes),
-        folder=str(folder),
-    )
+    document = fit_document(result, folder)
     (folder / RESULT_FILE).write_text(json_text(document.as_json(), indent=2) + "\n")
     return document
 
@@ -308,7 +293,39 @@ def find_gaps(
     folder = _analysis_folder(store, "gaps", analysis_id)
     model_out = Path(out) if out is not None else folder / MODEL_FILE
     result = workflow(runs, start, report_dir=report_dir, progress=progress, model_out=model_out)
-    document = GapsDocument(
+    document = gaps_document(result, folder)
+    (folder / RESULT_FILE).write_text(json_text(document.as_json(), indent=2) + "\n")
+    return document
+
+
+def fit_document(result: Identification, folder: Path | None = None) -> FitDocument:
+    """The `fit --json` document of an identification."""
+    from rig.identification.identify import FIT_METRIC
+
+    return FitDocument(
+        model_file=str(result.model_file),
+        parameters={
+            row.name: FitParameter(
+                estimate=row.estimate,
+                uncertainty=row.uncertainty,
+                start=row.start,
+                identifiable=row.identifiable,
+                stage=row.stage,
+                note=row.note,
+            )
+            for row in result.parameters
+        },
+        fit_error=FitError(metric=FIT_METRIC, before=result.fit_error_before, after=result.fit_error_after),
+        validation=result.validation.table() if result.validation else None,
+        report=str(result.report_file) if result.report_file else None,
+        notes=list(result.notes),
+        folder=str(folder) if folder else None,
+    )
+
+
+def gaps_document(result: GapsResult, folder: Path | None = None) -> GapsDocument:
+    """The `gaps --json` document of a gap workflow's result."""
+    return GapsDocument(
         metric=result.metric,
         initial_gap=result.initial_gap,
         steps=[
@@ -322,10 +339,8 @@ def find_gaps(
             for step in result.steps
         ],
         final_gap=result.final_gap,
-        final_model=str(result.final_model),
+        final_model=str(result.final_model) if result.final_model else None,
         verdict=result.verdict,
         report=[str(p) for p in result.report],
-        folder=str(folder),
+        folder=str(folder) if folder else None,
     )
-    (folder / RESULT_FILE).write_text(json_text(document.as_json(), indent=2) + "\n")
-    return document

@@ -10,7 +10,6 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -47,16 +46,6 @@ class ParameterRow:
     stage: str
     note: str = ""
 
-    def as_json(self) -> dict[str, Any]:
-        return {
-            "estimate": self.estimate,
-            "uncertainty": self.uncertainty,
-            "start": self.start,
-            "identifiable": self.identifiable,
-            "stage": self.stage,
-            "note": self.note,
-        }
-
 
 @dataclass
 class Identification:
@@ -68,20 +57,6 @@ class Identification:
     notes: list[str] = field(default_factory=list)
     model_file: Path | None = None
     report_file: Path | None = None
-
-    def as_json(self) -> dict[str, Any]:
-        return {
-            "model_file": str(self.model_file) if self.model_file else None,
-            "parameters": {row.name: row.as_json() for row in self.parameters},
-            "fit_error": {
-                "metric": FIT_METRIC,
-                "before": self.fit_error_before,
-                "after": self.fit_error_after,
-            },
-            "validation": self.validation.as_json() if self.validation else None,
-            "report": str(self.report_file) if self.report_file else None,
-            "notes": self.notes,
-        }
 
 
 def _joint_runs(runs: list[Run]) -> list[Run]:

@@ -61,7 +61,8 @@ class ValidationReport:
     plots: list[Path] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
-    def as_json(self) -> list[dict[str, float | str | None]]:
+    def table(self) -> list[dict[str, float | str | None]]:
+        """One row per scenario, for the fit document."""
         return [
             {
                 "scenario": r.scenario,
