@@ -5,10 +5,10 @@ Prints a table, asserts nothing. What it measures, in one process, into a throw-
 1. Warm-up: a tiny speed sweep (two speeds, short holds) first. A fresh process loads (or, with an empty
    cache, compiles) the numba-compiled drive and plant loops on its first run, and imports matplotlib for
    the first plot; that one-off cost is reported on its own line, not charged to the campaign.
-2. The campaign (`rig.runner.run_campaign`, CAMPAIGN_ORDER) on configs/rigs/sim.yaml as `make run` runs
-   it: per experiment the wall time from its start to its outcome (rig, store, analysis, tables, plots),
-   split at the experiment's last progress report into playing and analysis; and the simulated time,
-   from the samples the run stored and the rig's sample rate.
+2. The campaign (`rig.core.actions.execute_plan` of `plan_run("campaign")`, CAMPAIGN_ORDER) on
+   configs/rigs/sim.yaml as `make run` runs it: per experiment the wall time from its start to its
+   outcome (rig, store, analysis, tables, plots), split at the experiment's last progress report into
+   playing and analysis; and the simulated time, from the samples the run stored and the rig's rate.
 3. The total wall time against the target: under 20 s for the whole campaign on these machines.
 """
 
@@ -43,8 +43,10 @@ def main() -> int:
     os.environ["HDRIG_HOME"] = home.name  # nothing the benchmark stores outlives it
     started = time.perf_counter()
     from rig.config import load_rig_config
+    from rig.core.actions import execute_plan, plan_run
+    from rig.core.documents import RunDocument
     from rig.experiments import CAMPAIGN_ORDER
-    from rig.runner import RunOutcome, run_campaign, run_experiment
+    from rig.runner import run_experiment
     from rig.store import RunStore
 
     import_s = time.perf_counter() - started
@@ -59,22 +61,22 @@ def main() -> int:
     warm_up_s = time.perf_counter() - started
 
     last_report: dict[str, float] = {}
-    landed: list[tuple[RunOutcome, float]] = []
+    landed: list[tuple[RunDocument, float]] = []
 
     def progress(label: str, fraction: float) -> None:
         last_report[label.split(":", 1)[0]] = time.perf_counter()
 
-    def on_outcome(outcome: RunOutcome) -> None:
-        landed.append((outcome, time.perf_counter()))
+    def on_run(run: RunDocument) -> None:
+        landed.append((run, time.perf_counter()))
 
     campaign_start = time.perf_counter()
-    run_campaign(config, store=store, progress=progress, on_outcome=on_outcome)
+    execute_plan(plan_run("campaign"), config, store, progress=progress, on_run=on_run)
     campaign_s = time.perf_counter() - campaign_start
 
     rows = []
     begin = campaign_start
     for outcome, end in landed:
-        samples = int(store.get(outcome.run_id)["samples"])
+        samples = outcome.samples
         played = last_report.get(outcome.experiment, end)
         rows.append(
             Row(

@@ -14,8 +14,8 @@ import time
 from model.fit.parameters import get_values, with_values
 from model.params import load_model
 from rig.config import load_rig_config
+from rig.core.actions import execute_plan, plan_run
 from rig.identification import identify
-from rig.runner import run_campaign
 from rig.store import RunStore
 
 TARGET_S = 30.0
@@ -39,9 +39,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as home:
         store = RunStore(home)
         t0 = time.perf_counter()
-        outcomes = run_campaign(load_rig_config("sim"), store=store)
+        documents = execute_plan(plan_run("campaign"), load_rig_config("sim"), store)
         campaign_s = time.perf_counter() - t0
-        runs = [store.read(o.run_id) for o in outcomes]
+        runs = [store.read(d.id) for d in documents]
         stages: list[tuple[str, float]] = []
         t0 = time.perf_counter()
         result = identify(runs, start, progress=lambda label, _: stages.append((label, time.perf_counter())))

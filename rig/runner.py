@@ -22,7 +22,7 @@ from pydantic import ValidationError
 
 from model.errors import UserInputError, describe_validation_error
 from rig.config import RigConfig
-from rig.experiments import CAMPAIGN_ORDER, experiment_named
+from rig.experiments import experiment_named
 from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext
 from rig.faults import DeviceFaultError
 from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, open_rig
@@ -178,6 +178,11 @@ def _play(
             rig.quick_stop()  # first the motor, then the bookkeeping
             fault = str(exc)
             reason = f"aborted: {fault}"
+        except BaseException:
+            # One stop path: a bug, a signal or Ctrl-C stops the motor before the writer seals (sealing a
+            # long run takes a second or more of motion otherwise); the writer then ends it `aborted`.
+            rig.quick_stop()
+            raise
         if reason is not None:
             writer.finish(RunStatus.ABORTED, reason=reason)
             return RunOutcome(
@@ -245,43 +250,5 @@ def _segment_progress(
 ) -> Callable[[float], None]:
     def report(fraction: float) -> None:
         progress(f"{name}: {seg.label}", (done + fraction * seg.cycles) / total)
-
-    return report
-
-
-def run_campaign(
-    config: RigConfig,
-    overrides: dict[str, dict[str, Any]] | None = None,
-    store: RunStore | None = None,
-    progress: Progress | None = None,
-    experiments: Sequence[str] = CAMPAIGN_ORDER,
-    on_outcome: Callable[[RunOutcome], None] | None = None,
-    keep_going: bool = False,
-    rig: Rig | None = None,
-    hooks: RunHooks | None = None,
-) -> list[RunOutcome]:
-    """Every experiment in turn, each on a fresh rig from rest, each its own run.
-
-    A run that ends `aborted` stops the campaign (a tripped envelope on a real bench wants a person),
-    unless `keep_going`.
-    """
-    store = store or RunStore()
-    outcomes = []
-    for index, name in enumerate(experiments):
-        report = None
-        if progress is not None:
-            report = _campaign_progress(progress, index, len(experiments))
-        outcome = run_experiment(name, config, (overrides or {}).get(name), store, report, rig, hooks)
-        outcomes.append(outcome)
-        if on_outcome is not None:
-            on_outcome(outcome)
-        if outcome.status == RunStatus.ABORTED and not keep_going:
-            break
-    return outcomes
-
-
-def _campaign_progress(progress: Progress, index: int, count: int) -> Progress:
-    def report(label: str, fraction: float) -> None:
-        progress(label, (index + fraction) / count)
 
     return report

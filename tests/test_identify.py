@@ -20,8 +20,8 @@ from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel, load_model
 from model.run import Run
 from rig.config import load_rig_config
+from rig.core.actions import execute_plan, plan_run
 from rig.identification import identify
-from rig.runner import run_campaign
 from rig.store import RunStore
 
 EXPERIMENTS = ("speed-sweep", "position-friction", "pulse", "load-variation", "step", "sine", "ramp", "chirp")
@@ -44,8 +44,8 @@ TOLERANCE = {
 @pytest.fixture(scope="module")
 def store(tmp_path_factory: pytest.TempPathFactory) -> RunStore:
     store = RunStore(tmp_path_factory.mktemp("store"))
-    outcomes = run_campaign(load_rig_config("sim"), store=store, experiments=EXPERIMENTS)
-    assert all(o.status == "complete" for o in outcomes)
+    runs = execute_plan(plan_run("campaign", experiments=EXPERIMENTS), load_rig_config("sim"), store)
+    assert all(run.status == "complete" for run in runs)
     return store
 
 

@@ -81,11 +81,17 @@ def list_experiments() -> list[ExperimentInfo]:
 # ---- planning and running -----------------------------------------------------------------------
 
 
-def plan_run(experiment: str, params: dict[str, Any] | None = None, keep_going: bool = False) -> RunPlan:
+def plan_run(
+    experiment: str,
+    params: dict[str, Any] | None = None,
+    keep_going: bool = False,
+    experiments: Sequence[str] = CAMPAIGN_ORDER,
+) -> RunPlan:
     """Validate a start request before the rig is touched.
 
     One experiment takes its parameters (`{"hold_s": 0.5}`); the campaign takes them per experiment
-    (`{"speed-sweep": {"hold_s": 0.5}}`). Unknown experiments and bad values are one-line errors.
+    (`{"speed-sweep": {"hold_s": 0.5}}`) and plays `experiments` in turn (all of them by default).
+    Unknown experiments and bad values are one-line errors.
     """
     given = dict(params or {})
     if experiment == CAMPAIGN:
@@ -94,7 +100,9 @@ def plan_run(experiment: str, params: dict[str, Any] | None = None, keep_going: 
             raise UserInputError(
                 f"run campaign: params.{unknown[0]} is not an experiment (one of {', '.join(CAMPAIGN_ORDER)})"
             )
-        names: Sequence[str] = CAMPAIGN_ORDER
+        for name in experiments:
+            experiment_named(name)
+        names: Sequence[str] = experiments
     else:
         experiment_named(experiment)
         names, given = [experiment], {experiment: given}
