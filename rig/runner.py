@@ -11,6 +11,7 @@ The application core (`rig.core`) calls this for the command line and the servic
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +30,8 @@ from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, open
 from rig.runfile import json_text
 from rig.status import RunStatus
 from rig.store import RunStore, RunWriter
+
+logger = logging.getLogger(__name__)
 
 SETTLE_S = 0.2
 Progress = Callable[[str, float], None]
@@ -121,7 +124,11 @@ def run_experiment(
     own_rig = rig is None
     rig = rig or open_rig(config)
     try:
-        return _play(experiment, params, rig, store, progress, hooks or RunHooks())
+        # Up front, before anything moves: a mode the rig cannot play is refused (ModeRefusedError).
+        modes = rig.check_modes(sorted({ControlMode.VELOCITY, *experiment.needs}))  # VELOCITY: the settle
+        for line in modes:
+            logger.info("%s: %s", experiment.name, line)
+        return _play(experiment, params, rig, store, progress, hooks or RunHooks(), modes)
     finally:
         if own_rig:
             rig.close()
@@ -134,6 +141,7 @@ def _play(
     store: RunStore,
     progress: Progress | None,
     hooks: RunHooks,
+    modes: list[str],
 ) -> RunOutcome:
     config = rig.config
     rig.enable()
@@ -148,6 +156,7 @@ def _play(
         "rig_config": config.model_dump(mode="json"),
         "gear_ratio": rig.gear_ratio,
         "torque_constant_nm_per_a": rig.torque_constant_nm_per_a,
+        "rig_modes": modes,  # how the rig plays each kind of program, and why (a drive's chosen modes)
     }
     writer = store.open_run(
         experiment=experiment.name,
