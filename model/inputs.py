@@ -10,7 +10,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import chirp as scipy_chirp
 
 from model.errors import UserInputError
 
@@ -44,6 +43,8 @@ def _chirp(q: dict[str, float], t: np.ndarray, duration_s: float) -> np.ndarray:
     sweep_s = q["duration"] if q["duration"] > 0 else duration_s
     if sweep_s <= 0:
         raise InputSpecError("chirp: needs duration=S or a simulation duration")
+    from scipy.signal import chirp as scipy_chirp  # scipy.signal takes ~0.7 s to import: only for chirps
+
     method = "logarithmic" if q["log"] else "linear"
     # scipy's chirp starts at cos(0) = 1; a sine start keeps the input continuous from rest.
     return q["offset"] + q["amp"] * scipy_chirp(t, q["f0"], sweep_s, q["f1"], method=method, phi=-90)

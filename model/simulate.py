@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
@@ -62,6 +64,81 @@ def _meta(model: HarmonicDriveModel, rate_hz: float, **extra: Any) -> dict[str, 
     }
 
 
+CHUNK_STEPS = 1 << 15
+"""Integration steps per chunk: inputs and outputs of a chunk stay in the CPU cache, whatever the duration."""
+
+
+@dataclass
+class SimulationStream:
+    """A simulation not yet run: its metadata and columns now, its samples block by block when iterated.
+
+    Iterating integrates the next chunk of steps and yields its samples, so a run of any duration
+    is simulated and written (`rig.runfile.write_stream`) with memory bounded by one chunk.
+    """
+
+    meta: dict[str, Any]
+    columns: list[str]
+    rows: int  # samples the whole simulation yields
+    _blocks: Callable[[], Iterator[dict[str, np.ndarray]]]
+
+    def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
+        return self._blocks()
+
+
+def simulate_stream(
+    model: HarmonicDriveModel,
+    input: InputProfile | str | float,
+    duration_s: float,
+    dt_s: float = 1e-4,
+    rate_hz: float = 1000.0,
+    mode: InputMode = "voltage",
+    tau_ext: InputProfile | str | float = 0.0,
+    theta_m0: float = 0.0,
+    diagnostics: bool = False,
+) -> SimulationStream:
+    """`simulate`, chunk by chunk: the inputs of each chunk are evaluated and its samples yielded in
+    turn, so memory does not grow with the duration. Settings are checked now, before any step."""
+    if not (duration_s > 0 and math.isfinite(duration_s)):
+        raise SimulationError(f"duration must be a positive number of seconds, got {duration_s}")
+    if not (0 < dt_s <= 0.01):
+        raise SimulationError(f"dt must be in (0, 0.01] s, got {dt_s}")
+    decim = round(1.0 / (rate_hz * dt_s)) if rate_hz > 0 else 0
+    if decim < 1 or not math.isclose(decim * dt_s * rate_hz, 1.0, rel_tol=1e-6):
+        raise SimulationError(
+            f"the sample period 1/rate = {1 / rate_hz if rate_hz > 0 else math.inf:g} s must be a whole"
+            f" multiple of dt = {dt_s:g} s"
+        )
+    n_steps = round(duration_s / dt_s)
+    profile = _as_profile(input)
+    load = _as_profile(tau_ext)
+    # A chunk is a whole number of sample periods, so every chunk starts on a sample.
+    chunk = decim * max(1, CHUNK_STEPS // decim)
+    for evaluated in (profile, load):
+        evaluated(np.zeros(1), duration_s)  # a spec its function refuses fails here, before any step
+    meta = _meta(model, rate_hz, experiment="simulate", input=profile.spec, input_mode=mode, dt_s=dt_s)
+    if load.kind != "const" or load.values["value"] != 0.0:
+        meta["tau_ext"] = load.spec
+    channels = {**_CHANNEL, INPUT_COLUMN[mode]: k.OUT_DRIVE}
+    if diagnostics:
+        channels.update(DIAGNOSTIC_COLUMNS)
+
+    def blocks() -> Iterator[dict[str, np.ndarray]]:
+        plant = Plant(model)
+        plant.reset(theta_m=theta_m0)
+        steps = np.arange(chunk, dtype=np.float64)
+        out = np.empty((chunk // decim, k.N_OUT))
+        const_load = np.array([load.values["value"]]) if load.kind == "const" else None
+        for first in range(0, n_steps, chunk):
+            n = min(chunk, n_steps - first)
+            t = (first + steps[:n]) * dt_s  # from the step index: no drift of a summed clock
+            drive = profile(t, duration_s)
+            load_values = const_load if const_load is not None else load(t, duration_s)
+            rows = plant.advance(drive, mode, load_values, dt_s, decim, out)
+            yield {name: rows[:, ch].copy() for name, ch in channels.items()}
+
+    return SimulationStream(meta, list(channels), -(-n_steps // decim), blocks)
+
+
 def simulate(
     model: HarmonicDriveModel,
     input: InputProfile | str | float,
@@ -77,30 +154,17 @@ def simulate(
 
     The input is evaluated at every integration step (not only at the samples). With
     `diagnostics=True` the run also carries τ_m, F_m, F_l and T_s, the torques the model applied.
+    Memory holds the samples kept, not the steps: `simulate_stream` writes runs longer than memory.
     """
-    if not (duration_s > 0 and math.isfinite(duration_s)):
-        raise SimulationError(f"duration must be a positive number of seconds, got {duration_s}")
-    if not (0 < dt_s <= 0.01):
-        raise SimulationError(f"dt must be in (0, 0.01] s, got {dt_s}")
-    decim = round(1.0 / (rate_hz * dt_s)) if rate_hz > 0 else 0
-    if decim < 1 or not math.isclose(decim * dt_s * rate_hz, 1.0, rel_tol=1e-6):
-        raise SimulationError(
-            f"the sample period 1/rate = {1 / rate_hz if rate_hz > 0 else math.inf:g} s must be a whole"
-            f" multiple of dt = {dt_s:g} s"
-        )
-    n_steps = round(duration_s / dt_s)
-    t = np.arange(n_steps) * dt_s
-    profile = _as_profile(input)
-    load = _as_profile(tau_ext)
-    drive = profile(t, duration_s)
-    load_values = load(t, duration_s) if load.kind != "const" else np.array([load.values["value"]])
-    plant = Plant(model)
-    plant.reset(theta_m=theta_m0)
-    rows = plant.advance(drive, mode, load_values, dt_s, decim)
-    meta = _meta(model, rate_hz, experiment="simulate", input=profile.spec, input_mode=mode, dt_s=dt_s)
-    if load.kind != "const" or load.values["value"] != 0.0:
-        meta["tau_ext"] = load.spec
-    return _run_from_rows(rows, mode, meta, diagnostics)
+    stream = simulate_stream(model, input, duration_s, dt_s, rate_hz, mode, tau_ext, theta_m0, diagnostics)
+    columns = {name: np.empty(stream.rows) for name in stream.columns}
+    row = 0
+    for block in stream:
+        n = len(block["t"])
+        for name, values in block.items():
+            columns[name][row : row + n] = values
+        row += n
+    return Run(columns, stream.meta)
 
 
 def _substeps(interval_s: float, dt_s: float) -> int:

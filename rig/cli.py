@@ -9,6 +9,7 @@ to stderr.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 from collections.abc import Callable, Sequence
@@ -18,16 +19,34 @@ from typing import TYPE_CHECKING, Any, NoReturn
 from model.errors import UserInputError
 from model.inputs import KINDS
 from model.params import PRESET_DIR, HarmonicDriveModel, load_model
-from rig.core import actions
 from rig.faults import DeviceFaultError
 from rig.status import RunStatus
 
 if TYPE_CHECKING:
+    from rig.core import actions
     from rig.core.documents import RunDocument
     from rig.core.worker import Job, RigWorker
     from rig.progress import ProgressBar
 
 Handler = Callable[[argparse.Namespace], int]
+
+
+def _lazy_module(name: str) -> Any:
+    """The module `name`, loaded at its first attribute access (importlib's LazyLoader recipe)."""
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.find_spec(name)
+    assert spec is not None and spec.loader is not None, name
+    spec.loader = importlib.util.LazyLoader(spec.loader)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+if not TYPE_CHECKING:
+    # The core imports every experiment (scipy.signal, matplotlib): ~1 s that `hdrig simulate` never uses.
+    actions = _lazy_module("rig.core.actions")
 
 CAMPAIGN = "campaign"
 EXIT_BAD_INPUT = 2
@@ -87,28 +106,31 @@ def cmd_model_show(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from model.simulate import replay, simulate
-    from rig.runfile import read_run, write_run
+    from model.simulate import replay, simulate_stream
+    from rig.runfile import read_run, write_run, write_stream
 
     model = load_model(args.model)
     if args.input_file:
         source = read_run(args.input_file)
         run = replay(model, source, dt_s=args.dt, diagnostics=args.diagnostics)
-    else:
-        if args.duration is None:
-            raise UserInputError("simulate --input needs --duration S")
-        run = simulate(
-            model,
-            args.input,
-            args.duration,
-            dt_s=args.dt,
-            rate_hz=args.rate,
-            mode=args.mode,
-            tau_ext=args.load,
-            diagnostics=args.diagnostics,
-        )
-    path = write_run(run, args.out)
-    _say(f"wrote {len(run)} samples ({run.t[-1] - run.t[0]:.3f} s) to {path}")
+        path = write_run(run, args.out)
+        _say(f"wrote {len(run)} samples ({run.t[-1] - run.t[0]:.3f} s) to {path}")
+        return 0
+    if args.duration is None:
+        raise UserInputError("simulate --input needs --duration S")
+    # Chunk by chunk from the integrator to the file: memory does not grow with --duration.
+    stream = simulate_stream(
+        model,
+        args.input,
+        args.duration,
+        dt_s=args.dt,
+        rate_hz=args.rate,
+        mode=args.mode,
+        tau_ext=args.load,
+        diagnostics=args.diagnostics,
+    )
+    path, rows = write_stream(stream, stream.columns, stream.meta, args.out)
+    _say(f"wrote {rows} samples ({(rows - 1) / args.rate:.3f} s) to {path}")
     return 0
 
 

@@ -12,15 +12,16 @@ import io
 import json
 import os
 import re
+import struct
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from types import TracebackType
 from typing import IO, Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pa_csv
 import pyarrow.parquet as pq
-import scipy.io
 
 from model.errors import UserInputError
 from model.run import KNOWN_COLUMNS, Run, RunFormatError
@@ -29,6 +30,8 @@ WRITE_SUFFIXES = (".parquet", ".csv", ".mat")
 READ_SUFFIXES = (".parquet", ".csv")
 _MATLAB_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}")
 _MAT_META_VARIABLE = "meta"
+ROW_GROUP_ROWS = 1 << 16
+"""Rows per Parquet row group in run files: a window or a column of a long run is read a group at a time."""
 
 
 class RunFileError(UserInputError):
@@ -88,7 +91,7 @@ def write_parquet(columns: dict[str, np.ndarray], meta: dict[str, Any], path: st
     kv = {key: json_text(value) for key, value in meta.items()}
     table = _table(columns).replace_schema_metadata(kv)
     with _atomic_write(path) as f:
-        pq.write_table(table, f)
+        pq.write_table(table, f, row_group_size=ROW_GROUP_ROWS)
     return path
 
 
@@ -116,6 +119,8 @@ def _matlab_value(value: Any) -> Any:
 
 
 def _write_mat(run: Run, path: Path) -> None:
+    import scipy.io  # ~0.1 s to import: only MAT files need it
+
     variables: dict[str, Any] = {}
     for name in ordered_columns(run.columns):
         if not _MATLAB_NAME.fullmatch(name) or name == _MAT_META_VARIABLE:
@@ -158,6 +163,246 @@ def write_columns(columns: dict[str, np.ndarray], meta: dict[str, Any], path: st
     else:
         _write_mat(run, path)
     return path
+
+
+# ---- streaming: a run of any length, block by block -----------------------------------------------
+
+
+class StreamCheck:
+    """The run-format checks of `Run.validate`, made block by block: finite values, `t` strictly
+    increasing across blocks, and (with `as_run`) `theta_m` present and at least two rows in all."""
+
+    def __init__(self, where: str, names: list[str], as_run: bool = True) -> None:
+        self.where = where
+        self.as_run = as_run
+        self.rows = 0
+        self._last_t: float | None = None
+        if as_run:
+            for required in ("t", "theta_m"):
+                if required not in names:
+                    raise RunFormatError(f"{where}: required column {required!r} is missing")
+
+    def block(self, columns: dict[str, np.ndarray]) -> None:
+        for name, values in columns.items():
+            bad = np.flatnonzero(~np.isfinite(values))
+            if bad.size:
+                row = self.rows + int(bad[0])
+                raise RunFormatError(
+                    f"{self.where}: column '{name}' has a non-finite value at row {row} ({values[bad[0]]})"
+                )
+        t = columns.get("t")
+        if t is not None and t.size:
+            steps = np.diff(t)
+            if self._last_t is not None and t[0] <= self._last_t:
+                bad_row = self.rows
+            elif np.any(steps <= 0):
+                bad_row = self.rows + int(np.flatnonzero(steps <= 0)[0]) + 1
+            else:
+                bad_row = -1
+            if bad_row >= 0:
+                raise RunFormatError(
+                    f"{self.where}: column 't' must be strictly increasing; row {bad_row} goes back"
+                )
+            self._last_t = float(t[-1])
+        self.rows += len(next(iter(columns.values()))) if columns else 0
+
+    def close(self) -> None:
+        if self.as_run and self.rows < 2:
+            raise RunFormatError(f"{self.where}: needs at least 2 samples, has {self.rows}")
+
+
+class RunFileWriter:
+    """Writes a run block by block, so its length is bounded by the disk, not by memory.
+
+    Parquet goes out a row group at a time, CSV a block at a time (metadata beside it in
+    `<file>.json`); MAT, whose variables are whole columns, is first written as a temporary Parquet
+    file beside the target and then converted one column and row group at a time. Nothing appears under
+    `path` until `close()` (or a clean `with` exit); on an error the partial file is removed. With
+    `as_run=False` the blocks are a selection (any columns, any rows) and only finite values and the
+    order of `t` are checked, as `write_columns` does.
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        names: Iterable[str],
+        meta: dict[str, Any],
+        as_run: bool = True,
+    ) -> None:
+        self.path = Path(path)
+        self.suffix = self.path.suffix.lower()
+        if self.suffix not in WRITE_SUFFIXES:
+            raise RunFileError(
+                f"{self.path}: unknown suffix {self.suffix!r}; use one of {', '.join(WRITE_SUFFIXES)}"
+            )
+        self.names = ordered_columns(names)
+        self.meta = dict(meta)
+        self.check = StreamCheck(str(self.path), self.names, as_run)
+        if self.suffix == ".mat":
+            for name in self.names:
+                if not _MATLAB_NAME.fullmatch(name) or name == _MAT_META_VARIABLE:
+                    raise RunFileError(f"{self.path}: column {name!r} cannot be a MATLAB variable name")
+        self._schema = pa.schema([(c, pa.float64()) for c in self.names])
+        body = self.path if self.suffix != ".mat" else self.path.with_suffix(".mat.parquet")
+        self._tmp = body.with_name(f".{body.name}.{os.getpid()}.tmp")
+        self._file: IO[bytes] = open(self._tmp, "wb")  # noqa: SIM115 - held until close() or discard()
+        self._pending: list[pa.Table] = []
+        self._pending_rows = 0
+        self._parquet: pq.ParquetWriter | None = None
+        self._csv: pa_csv.CSVWriter | None = None
+        try:
+            self._open_format()
+        except BaseException:
+            self.discard()
+            raise
+
+    def _open_format(self) -> None:
+        if self.suffix == ".csv":
+            header = io.StringIO()
+            csv.writer(header, lineterminator="\n").writerow(self.names)
+            self._file.write(header.getvalue().encode())
+            self._csv = pa_csv.CSVWriter(
+                self._file, self._schema, write_options=pa_csv.WriteOptions(include_header=False)
+            )
+        else:
+            kv = {key: json_text(value) for key, value in self.meta.items()}
+            self._parquet = pq.ParquetWriter(self._file, self._schema.with_metadata(kv))
+
+    def write(self, block: dict[str, np.ndarray]) -> None:
+        """Append rows: one array per column, equal lengths, `t` continuing to increase."""
+        if set(block) != set(self.names):
+            raise ValueError(f"{self.path}: block has columns {sorted(block)}, the file has {self.names}")
+        arrays = {c: np.asarray(block[c], dtype=np.float64) for c in self.names}
+        self.check.block(arrays)
+        table = pa.table(arrays, schema=self._schema)
+        if self._csv is not None:
+            self._csv.write_table(table)
+            return
+        self._pending.append(table)
+        self._pending_rows += table.num_rows
+        if self._pending_rows >= ROW_GROUP_ROWS:
+            self._write_groups(final=False)
+
+    def _write_groups(self, final: bool) -> None:
+        assert self._parquet is not None
+        joined = pa.concat_tables(self._pending) if self._pending else self._schema.empty_table()
+        whole = joined.num_rows if final else joined.num_rows - joined.num_rows % ROW_GROUP_ROWS
+        if whole:
+            self._parquet.write_table(joined.slice(0, whole), row_group_size=ROW_GROUP_ROWS)
+        rest = joined.slice(whole)
+        self._pending = [rest] if rest.num_rows else []
+        self._pending_rows = rest.num_rows
+
+    def close(self) -> Path:
+        """Finish the file and move it into place; returns its path."""
+        try:
+            self.check.close()
+            if self._csv is not None:
+                self._csv.close()
+            else:
+                self._write_groups(final=True)
+                assert self._parquet is not None
+                self._parquet.close()
+            self._file.flush()
+            os.fsync(self._file.fileno())
+            self._file.close()
+            if self.suffix == ".mat":
+                _parquet_to_mat(self._tmp, self.path, self.meta)
+            else:
+                os.replace(self._tmp, self.path)
+            if self.suffix == ".csv":
+                with _atomic_write(sidecar_path(self.path)) as f:
+                    f.write(json_text(self.meta, indent=2).encode())
+        finally:
+            self.discard()
+        return self.path
+
+    def discard(self) -> None:
+        """Drop what was written (an error happened); the target path is left untouched."""
+        for stream in (self._parquet, self._csv):
+            if stream is not None and not self._file.closed:
+                with contextlib.suppress(pa.ArrowException, ValueError):
+                    stream.close()  # its footer goes to the file about to be deleted
+        if not self._file.closed:
+            self._file.close()
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> RunFileWriter:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc is None:
+            self.close()
+        else:
+            self.discard()
+
+
+# MAT level 5 (what MATLAB's `load` reads since v5): 128-byte header, then one data element per variable.
+_MI_INT8, _MI_INT32, _MI_UINT32, _MI_DOUBLE, _MI_MATRIX = 1, 5, 6, 9, 14
+_MX_DOUBLE_CLASS = 6
+_MAT_ELEMENT_LIMIT = 2**32 - 1  # the element size is a uint32: a column of ~536 M doubles at most
+
+
+def _pad8(n: int) -> int:
+    return (8 - n % 8) % 8
+
+
+def _mat_column_header(name: str, rows: int) -> bytes:
+    """An uncompressed miMATRIX element up to its real part's data: rows × 1 doubles named `name`."""
+    data_bytes = 8 * rows
+    name_bytes = name.encode("ascii")
+    body = b"".join(
+        [
+            struct.pack("<II", _MI_UINT32, 8),
+            struct.pack("<II", _MX_DOUBLE_CLASS, 0),
+            struct.pack("<II", _MI_INT32, 8),
+            struct.pack("<ii", rows, 1),
+            struct.pack("<II", _MI_INT8, len(name_bytes)),
+            name_bytes + b"\0" * _pad8(len(name_bytes)),
+            struct.pack("<II", _MI_DOUBLE, data_bytes),
+        ]
+    )
+    size = len(body) + data_bytes  # 8·rows is a multiple of 8: no padding after the data
+    if size > _MAT_ELEMENT_LIMIT:
+        raise RunFileError(f"column {name!r}: {rows} rows is more than a MAT variable holds; use parquet")
+    return struct.pack("<II", _MI_MATRIX, size) + body
+
+
+def _parquet_to_mat(source: Path, path: Path, meta: dict[str, Any]) -> None:
+    """Write the columns of a Parquet file as MAT variables (column vectors), one row group at a time."""
+    import scipy.io
+
+    parquet = pq.ParquetFile(source)
+    rows = parquet.metadata.num_rows
+    # The metadata struct is small: scipy encodes it, and its element is appended after the columns.
+    meta_file = io.BytesIO()
+    scipy.io.savemat(
+        meta_file, {_MAT_META_VARIABLE: _matlab_value(meta)}, do_compression=True, long_field_names=True
+    )
+    with _atomic_write(path) as f:
+        f.write(meta_file.getvalue()[:128])  # the same header scipy writes
+        for name in parquet.schema_arrow.names:
+            f.write(_mat_column_header(name, rows))
+            for group in range(parquet.num_row_groups):
+                column = parquet.read_row_group(group, columns=[name]).column(0)
+                f.write(np.ascontiguousarray(column.to_numpy(), dtype="<f8").tobytes())
+        f.write(meta_file.getvalue()[128:])
+
+
+def write_stream(
+    blocks: Iterable[dict[str, np.ndarray]],
+    names: Iterable[str],
+    meta: dict[str, Any],
+    path: str | os.PathLike[str],
+    as_run: bool = True,
+) -> tuple[Path, int]:
+    """Write blocks of rows to `path` (format by suffix) in bounded memory; (path, rows written)."""
+    with RunFileWriter(path, names, meta, as_run) as writer:
+        for block in blocks:
+            writer.write(block)
+    return writer.path, writer.check.rows
 
 
 # ---- reading -------------------------------------------------------------------------------------
