@@ -11,9 +11,11 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Final, Literal
 
 import canopen
 from canopen.objectdictionary import ObjectDictionary, ODVariable
+from canopen.objectdictionary.datatypes import SIGNED_TYPES
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from drivers.can_bus import BusSettings
@@ -64,7 +66,15 @@ class ScalingSettings(_Section):
         default=None, gt=0, description="position units per motor revolution; default: 0x608F:1 / 0x608F:2"
     )
     velocity_units_per_rad_s: float | None = Field(
-        default=None, gt=0, description="velocity units per rad/s; default: position units per second"
+        default=None,
+        gt=0,
+        description="velocity units per rad/s; default: from `velocity_unit`, else the drive's 0x60A9,"
+        " else position units per second",
+    )
+    velocity_unit: Literal["increments_per_s", "rpm"] | None = Field(
+        default=None,
+        description="the drive's velocity unit, where its EDS has no 0x60A9 to say: position units per"
+        " second, or motor revolutions per minute",
     )
     rated_torque_nm: float | None = Field(
         default=None, gt=0, description="motor rated torque, the 1000 ‰ of torque objects; default: 0x6076"
@@ -95,6 +105,11 @@ class CanopenSettings(BusSettings):
     boot_timeout_s: float = Field(default=5.0, gt=0, description="wait for the boot-up message [s]")
     reset_on_boot: bool = Field(default=True, description="send NMT reset node at boot")
     pace: bool = Field(default=True, description="hold the SYNC period in cycle(); off: SYNC on demand")
+    accept_drive_runs_on_if_host_dies: bool = Field(
+        default=False,
+        description="a drive with neither heartbeat consumer (0x1016) nor node guarding (0x100C/0x100D)"
+        " keeps its last command when this host hangs or dies; true: the lab accepts that on this bench",
+    )
     scaling: ScalingSettings
 
     @model_validator(mode="after")
@@ -219,11 +234,69 @@ def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: Objec
         rated_current = from_drive("rated_current_a", 0x6075, 0, "motor rated current, mA") / 1000.0
     return Scaling(
         position_units_per_rad=position_per_rad,
-        velocity_units_per_rad_s=settings.velocity_units_per_rad_s or position_per_rad,
+        velocity_units_per_rad_s=_velocity_units_per_rad_s(settings, od, read, position_per_rad),
         rated_torque_nm=rated_torque,
         rated_current_a=rated_current,
         torque_constant_nm_per_a=settings.torque_constant_nm_per_a,
     )
+
+
+VELOCITY_UNITS_PER_RAD_S: Final[dict[str, float | None]] = {
+    "increments_per_s": None,  # the position units' own, per second
+    "rpm": 60.0 / (2 * math.pi),
+}
+SI_NUMERATOR_UNITS: Final = {0xB4: "rpm", 0xB5: "increments_per_s"}
+"""0x60A9 (SI unit velocity, CiA 402): byte 2 the numerator's unit (0xB4 revolution, 0xB5 increment);
+byte 1 the denominator's (0x47 minute, 0x03 second), byte 3 a power of ten. Units the driver reads."""
+SI_UNIT_VELOCITY: Final = {0x00B44700: "rpm", 0x00B50300: "increments_per_s"}
+
+
+def _velocity_units_per_rad_s(
+    settings: ScalingSettings, od: ObjectDictionary, read: ObjectReader, position_per_rad: float
+) -> float:
+    """The setting; else the unit the setting names; else 0x60A9; else position units per second.
+
+    A velocity factor (0x6096) other than 1/1 changes the unit in a way only the settings can say.
+    """
+    if settings.velocity_units_per_rad_s is not None:
+        return settings.velocity_units_per_rad_s
+    unit: str | None = settings.velocity_unit
+    if unit is None and _has(od, 0x60A9):
+        code = read(0x60A9, 0)
+        unit = SI_UNIT_VELOCITY.get(code)
+        if unit is None:
+            raise CanopenConfigError(
+                f"canopen.scaling.velocity_units_per_rad_s is needed: the drive's velocity unit"
+                f" 0x60A9 = 0x{code:08X} is not rpm (0x00B44700) or increments/s (0x00B50300)"
+            )
+    if unit is None and _has(od, 0x6096, 2):
+        numerator, divisor = read(0x6096, 1), read(0x6096, 2)
+        if numerator != divisor:
+            raise CanopenConfigError(
+                f"canopen.scaling.velocity_units_per_rad_s is needed: the drive's velocity factor"
+                f" 0x6096 is {numerator}/{divisor}"
+            )
+    per_rad_s = VELOCITY_UNITS_PER_RAD_S[unit or "increments_per_s"]
+    return per_rad_s if per_rad_s is not None else position_per_rad
+
+
+Watchdog = Literal["heartbeat consumer", "node guarding", "none"]
+
+
+def host_watchdog(od: ObjectDictionary) -> Watchdog:
+    """How the drive can notice this host is gone: 0x1016 where it has one, else node guarding."""
+    if _has(od, 0x1016, 1):
+        return "heartbeat consumer"
+    if _has(od, 0x100C) and _has(od, 0x100D):
+        return "node guarding"
+    return "none"
+
+
+def guarding(settings: CanopenSettings) -> tuple[int, int]:
+    """Node guarding: (guard time 0x100C [ms], life time factor 0x100D) for the host's heartbeat
+    period and timeout: the host guards every period, the drive stops after about the timeout."""
+    factor = max(2, min(255, math.ceil(settings.host_heartbeat_timeout_ms / settings.host_heartbeat_ms)))
+    return settings.host_heartbeat_ms, factor
 
 
 def _has(od: ObjectDictionary, index: int, subindex: int = 0) -> bool:
@@ -281,10 +354,12 @@ def tpdo_layouts(od: ObjectDictionary) -> tuple[PdoLayout, PdoLayout]:
 
 def rpdo_layout(od: ObjectDictionary, mode: OperationMode) -> PdoLayout:
     """RPDO 1 for a mode: controlword + the mode's target."""
-    target = TARGET_OBJECT[mode]
-    if target not in od:
-        raise CanopenConfigError(f"the EDS has no 0x{target:04X}, the target object of {mode.name}")
-    return PdoLayout.of_objects(od, [(0x6040, 0), (target, 0)])
+    if mode not in TARGET_OBJECT:
+        raise CanopenConfigError(f"{mode.name} takes no target every cycle: it is not driven here")
+    index, sub = TARGET_OBJECT[mode]
+    if not _has(od, index, sub):
+        raise CanopenConfigError(f"the EDS has no 0x{index:04X}:{sub:02X}, the target object of {mode.name}")
+    return PdoLayout.of_objects(od, [(0x6040, 0), (index, sub)])
 
 
 def _pdo_writes(
@@ -324,9 +399,15 @@ def boot_plan(
     writes: list[SdoWrite] = []
     if _has(od, 0x1017):
         writes.append(SdoWrite(0x1017, 0, settings.drive_heartbeat_ms, "drive heartbeat period, ms"))
-    if _has(od, 0x1016, 1):
+    watchdog = host_watchdog(od)
+    if watchdog == "heartbeat consumer":
         consumer = settings.host_node_id << 16 | settings.host_heartbeat_timeout_ms
         writes.append(SdoWrite(0x1016, 1, consumer, f"stop without host {settings.host_node_id}'s heartbeat"))
+    elif watchdog == "node guarding":
+        guard_ms, factor = guarding(settings)
+        writes.append(SdoWrite(0x100C, 0, guard_ms, "guard time, ms: the host guards this often"))
+        life = f"life time factor: stop after {guard_ms * factor} ms unguarded"
+        writes.append(SdoWrite(0x100D, 0, factor, life))
     if _has(od, 0x1006):
         writes.append(SdoWrite(0x1006, 0, round(period_s * 1e6), "SYNC period, µs"))
     writes += _limit_writes(od, limits, scaling)
@@ -354,6 +435,32 @@ def _default_cob_id(od: ObjectDictionary, comm: int) -> int:
 
 
 def _limit_writes(od: ObjectDictionary, limits: DriveLimits, scaling: Scaling) -> list[SdoWrite]:
+    """The rig's saturation in the drive's units, each within the object's declared range or refused."""
+    writes = _unchecked_limit_writes(od, limits, scaling)
+    for write in writes:
+        var = od_variable(od, write.index, write.subindex)
+        low, high = declared_range(var)
+        if not low <= write.value <= high:
+            raise CanopenConfigError(
+                f"0x{write.index:04X} ({var.name}) = {write.value} is outside its declared range"
+                f" [{low}, {high}]: {write.why}; lower `control:` or check `canopen.scaling`"
+            )
+    return writes
+
+
+def declared_range(var: ODVariable) -> tuple[int, int]:
+    """The values an object takes: its EDS LowLimit/HighLimit, within what its data type holds."""
+    bits = len(var)
+    signed = var.data_type in SIGNED_TYPES
+    low, high = (-(1 << bits - 1), (1 << bits - 1) - 1) if signed else (0, (1 << bits) - 1)
+    if isinstance(var.min, int):
+        low = max(low, var.min)
+    if isinstance(var.max, int):
+        high = min(high, var.max)
+    return low, high
+
+
+def _unchecked_limit_writes(od: ObjectDictionary, limits: DriveLimits, scaling: Scaling) -> list[SdoWrite]:
     writes = []
     if _has(od, 0x6072):
         torque = scaling.torque_permille(limits.current_a * scaling.torque_constant_nm_per_a)

@@ -33,7 +33,11 @@ from drivers.canopen_config import (
     PdoPlan,
     Scaling,
     SdoWrite,
+    Watchdog,
     boot_plan,
+    declared_range,
+    guarding,
+    host_watchdog,
     mode_plan,
     resolve_scaling,
     rpdo_layout,
@@ -41,12 +45,15 @@ from drivers.canopen_config import (
 )
 from drivers.cia402 import (
     CONTROLWORD,
+    CW_ENABLE_IP_BIT,
+    TARGET_OBJECT,
     Command,
     OperationMode,
     State,
     command_towards,
     decode_statusword,
 )
+from drivers.drive_modes import DriveModes, ModeChoice, ModeUnavailableError
 from drivers.pdo_layout import od_variable
 from model.errors import UserInputError
 from rig.config import RigConfig
@@ -60,14 +67,17 @@ NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL, NMT_RESET_NODE = 0x01, 0x02, 0x80, 0x8
 NMT_OPERATIONAL_STATE: Final = 5
 HOST_HEARTBEAT_STATE: Final = bytes([NMT_OPERATIONAL_STATE])
 
-OPERATION_MODE_FOR: Final[dict[ControlMode, OperationMode]] = {
-    ControlMode.CURRENT: OperationMode.CYCLIC_SYNC_TORQUE,
-    ControlMode.VELOCITY: OperationMode.CYCLIC_SYNC_VELOCITY,
-    ControlMode.POSITION: OperationMode.CYCLIC_SYNC_POSITION,
+PROGRAM_OF: Final[dict[OperationMode, ControlMode]] = {
+    OperationMode.CYCLIC_SYNC_TORQUE: ControlMode.CURRENT,
+    OperationMode.PROFILE_TORQUE: ControlMode.CURRENT,
+    OperationMode.CYCLIC_SYNC_VELOCITY: ControlMode.VELOCITY,
+    OperationMode.PROFILE_VELOCITY: ControlMode.VELOCITY,
+    OperationMode.CYCLIC_SYNC_POSITION: ControlMode.POSITION,
+    OperationMode.INTERPOLATED_POSITION: ControlMode.POSITION,
 }
-"""The rig's motor-side modes on a CiA 402 drive: current as torque (K_m · i), speed, position."""
-
-_INT16, _INT32 = (-(1 << 15), (1 << 15) - 1), (-(1 << 31), (1 << 31) - 1)
+"""What a drive mode named directly plays: current as torque (K_m · i), speed, position."""
+TORQUE_MODES: Final = frozenset({OperationMode.CYCLIC_SYNC_TORQUE, OperationMode.PROFILE_TORQUE})
+POSITION_MODES: Final = frozenset({OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION})
 _TPDO1_NAMES: Final = {0x6041: "statusword", 0x6061: "mode", 0x6077: "torque", 0x6078: "current"}
 STANDSTILL_RAD_S: Final = 0.5
 """Below this motor speed an orderly stop removes power."""
@@ -128,8 +138,16 @@ class CanopenServo:
         self.network: RecordedNetwork | None = None
         self.node: canopen.RemoteNode | None = None
         self.scaling: Scaling | None = None
+        self.modes: DriveModes | None = None
+        """What the drive offers, read at boot."""
+        self.choice: ModeChoice | None = None
         self.mode: OperationMode | None = None
+        self.watchdog: Watchdog = host_watchdog(self.od)
+        """How the drive notices this host is gone: heartbeat consumer, node guarding, or none."""
         self._heartbeat: PeriodicFrame | None = None
+        self._guard: PeriodicFrame | None = None
+        self._target_range = (0, 0)
+        self._integrated_rad = 0.0  # a velocity program played in a position mode: the position so far
         # Receive side, filled by the network's notifier thread.
         self._rx = threading.Condition()
         self._tpdo_values: list[tuple[int, ...] | None] = [None, None]
@@ -186,23 +204,54 @@ class CanopenServo:
                 raise CanopenServoError(f"node {node.id}: no boot-up message within {timeout} s of NMT reset")
         else:
             self._nmt(NMT_PRE_OPERATIONAL)
+        if self.watchdog == "none" and not self.settings.accept_drive_runs_on_if_host_dies:
+            raise DriveSettingError(
+                f"node {node.id}: the EDS has neither heartbeat consumer (0x1016) nor node guarding"
+                " (0x100C/0x100D): the drive would run on if this host died; set"
+                " canopen.accept_drive_runs_on_if_host_dies: true only if the lab accepts that"
+            )
         if self._heartbeat is None:
             # From a thread of this process: if it hangs or dies, the drive's consumer stops the drive.
             period_s = self.settings.host_heartbeat_ms / 1000.0
             cob_id = 0x700 + self.settings.host_node_id
             self._heartbeat = network.send_periodic(cob_id, HOST_HEARTBEAT_STATE, period_s)
         self.scaling = resolve_scaling(self.settings.scaling, self.od, self._read)
-        self._plan, self.mode, self._last = None, None, None  # RPDO 1 is off until configure()
+        self.modes = DriveModes.of(self.od, self._read_or_none)
+        self._plan, self.mode, self.choice = None, None, None  # RPDO 1 is off until configure()
+        self._last = None
         self._write(boot_plan(self.od, self.settings, self.limits, self.scaling, self.period_s))
+        if self.watchdog == "node guarding" and self._guard is None:
+            # Guarding requests (RTR) from this process: without them the drive's life guard trips.
+            guard_s = guarding(self.settings)[0] / 1000.0
+            self._guard = network.send_periodic(0x700 + self.settings.node_id, b"", guard_s, remote=True)
         self._start_node()
 
+    def choose(self, program: ControlMode) -> ModeChoice:
+        """The drive mode a program runs in (`drivers.drive_modes`); DriveSettingError in one line naming
+        what the drive offers when none can."""
+        if program == ControlMode.VOLTAGE:
+            raise DriveSettingError(
+                f"node {self.settings.node_id}: a CiA 402 drive has no voltage mode; it offers {self.offer()}"
+            )
+        modes = self._modes()
+        try:
+            return modes.choose(program)
+        except ModeUnavailableError as exc:
+            raise DriveSettingError(f"node {self.settings.node_id}: {exc}") from None
+
+    def offer(self) -> str:
+        """What the drive offers, in words (its modes and where that was read)."""
+        return self._modes().offer()
+
     def configure(self, mode: OperationMode | ControlMode) -> None:
-        """Switch to a mode (CST for current, CSV, CSP, or PV): remap RPDO 1, set 0x6060, confirm.
+        """Switch to a program's mode (`choose`) or to a drive mode named directly: remap RPDO 1, set
+        0x6060, confirm it from 0x6061.
 
         The drive must not be OPERATION ENABLED: disable it first (a remap while powered is refused).
         """
         _network, node = self._connected()
-        op_mode = _operation_mode(mode)
+        choice = self._choice(mode)
+        op_mode = choice.mode
         if self._last is not None and self._last.state == State.OPERATION_ENABLED:
             raise RuntimeError(f"node {node.id}: disable the drive before switching to {op_mode.name}")
         self._nmt(NMT_PRE_OPERATIONAL)
@@ -210,7 +259,9 @@ class CanopenServo:
         self._write(mode_plan(self.od, self.settings.node_id, op_mode))
         tpdo1, tpdo2 = self._tpdo
         self._plan = PdoPlan(rpdo_layout(self.od, op_mode), tpdo1, tpdo2, self.settings.node_id)
-        self.mode = op_mode
+        self._target_range = declared_range(od_variable(self.od, *TARGET_OBJECT[op_mode]))
+        self.mode, self.choice = op_mode, choice
+        logger.info("node %d: %s", node.id, choice)
         self._start_node()
         feedback = self._first_answer()
         self._hold_raw = self._hold_target(feedback)
@@ -262,6 +313,7 @@ class CanopenServo:
         """Orderly stop: bring the speed to zero in velocity modes, then remove power (SWITCH ON DISABLED)."""
         self._plan_or_raise()
         if self.mode in (OperationMode.CYCLIC_SYNC_VELOCITY, OperationMode.PROFILE_VELOCITY):
+            # Speed to zero first; position modes hold where they are as they are disabled.
             deadline = time.monotonic() + timeout_s
             feedback = self._exchange(self._controlword, 0)
             moving = abs(feedback.velocity_rad_s) > STANDSTILL_RAD_S
@@ -341,17 +393,24 @@ class CanopenServo:
         return self._exchange(self._controlword, self._target_raw(target))
 
     def _target_raw(self, target: float) -> int:
+        """The target in the drive's units, within the target object's declared range."""
         scaling, mode = self._scaling(), self.mode
-        if mode == OperationMode.CYCLIC_SYNC_TORQUE:
-            return _clamp(scaling.torque_permille(target * scaling.torque_constant_nm_per_a), _INT16)
-        if mode == OperationMode.CYCLIC_SYNC_POSITION:
-            return _clamp(scaling.position_raw(target), _INT32)
-        return _clamp(scaling.velocity_raw(target), _INT32)
+        if mode in TORQUE_MODES:
+            raw = scaling.torque_permille(target * scaling.torque_constant_nm_per_a)
+        elif mode in POSITION_MODES:
+            if self.choice is not None and self.choice.integrates_speed:
+                self._integrated_rad += target * self.period_s
+                target = self._integrated_rad
+            raw = scaling.position_raw(target)
+        else:
+            raw = scaling.velocity_raw(target)
+        return _clamp(raw, self._target_range)
 
     def _hold_target(self, feedback: Feedback) -> int:
-        """The target that asks for no change: where the motor is in CSP, zero otherwise."""
-        if self.mode == OperationMode.CYCLIC_SYNC_POSITION:
-            return _clamp(self._scaling().position_raw(feedback.position_rad), _INT32)
+        """The target that asks for no change: where the motor is in position modes, zero otherwise."""
+        if self.mode in POSITION_MODES:
+            self._integrated_rad = feedback.position_rad
+            return _clamp(self._scaling().position_raw(feedback.position_rad), self._target_range)
         return 0
 
     def _walk_to(self, target: State, timeout_s: float) -> Feedback:
@@ -395,6 +454,8 @@ class CanopenServo:
         plan = self._plan_or_raise()
         if pace:
             self._wait_for_period()
+        if self.mode == OperationMode.INTERPOLATED_POSITION and controlword & 0x0F == 0x0F:
+            controlword |= CW_ENABLE_IP_BIT  # interpolation runs while enabled
         payload = plan.rpdo.encode((controlword, target_raw))
         with self._rx:
             before = list(self._tpdo_counts)
@@ -493,14 +554,16 @@ class CanopenServo:
         if self._last is not None and self._last.state == State.OPERATION_ENABLED:
             self.quick_stop()
         node = self.node
-        if node is not None and self._heartbeat is not None and not self._silent:
+        watch = {"heartbeat consumer": (0x1016, 1), "node guarding": (0x100C, 0)}.get(self.watchdog)
+        if node is not None and watch is not None and self._heartbeat is not None and not self._silent:
             try:  # let the drive stop watching a host that is leaving on purpose
-                node.sdo.download(0x1016, 1, od_variable(self.od, 0x1016, 1).encode_raw(0))
-            except (SdoAbortedError, SdoCommunicationError, KeyError, can.CanError) as exc:
-                logger.warning("close: heartbeat consumer of node %d not cleared: %s", node.id, exc)
-        if self._heartbeat is not None:
-            self._heartbeat.stop()
-            self._heartbeat = None
+                node.sdo.download(*watch, od_variable(self.od, *watch).encode_raw(0))
+            except (SdoAbortedError, SdoCommunicationError, can.CanError) as exc:
+                logger.warning("close: %s of node %d not cleared: %s", self.watchdog, node.id, exc)
+        for frame in (self._guard, self._heartbeat):
+            if frame is not None:
+                frame.stop()
+        self._guard, self._heartbeat = None, None
         self.network.disconnect()
         self.network, self.node = None, None
 
@@ -554,6 +617,13 @@ class CanopenServo:
     def _operational(self) -> bool:
         return self._drive_nmt_state == NMT_OPERATIONAL_STATE
 
+    def _read_or_none(self, index: int, subindex: int) -> int | None:
+        """The object's value, None when the drive refuses the read (it holds none)."""
+        try:
+            return self._read(index, subindex)
+        except DriveSettingError:
+            return None
+
     def _read(self, index: int, subindex: int) -> int:
         _network, node = self._connected()
         where = f"node {node.id}: SDO read of 0x{index:04X}:{subindex:02X}"
@@ -585,21 +655,23 @@ class CanopenServo:
             raise RuntimeError(f"node {self.settings.node_id}: no mode set: call configure() first")
         return self._plan
 
+    def _modes(self) -> DriveModes:
+        if self.modes is None:
+            raise RuntimeError(f"node {self.settings.node_id}: not booted: call boot() first")
+        return self.modes
+
+    def _choice(self, mode: OperationMode | ControlMode) -> ModeChoice:
+        if isinstance(mode, ControlMode):
+            return self.choose(mode)
+        program = PROGRAM_OF.get(mode)
+        if program is None:
+            raise DriveSettingError(f"configure: {mode.name} takes no target every cycle: not driven here")
+        return ModeChoice(program, mode, "named by the caller")
+
     def _scaling(self) -> Scaling:
         if self.scaling is None:
             raise RuntimeError(f"node {self.settings.node_id}: not booted: call boot() first")
         return self.scaling
-
-
-def _operation_mode(mode: OperationMode | ControlMode) -> OperationMode:
-    if isinstance(mode, OperationMode):
-        if mode == OperationMode.NO_MODE:
-            raise DriveSettingError("configure: NO_MODE is not a mode to run in")
-        return mode
-    try:
-        return OPERATION_MODE_FOR[mode]
-    except KeyError:
-        raise DriveSettingError(f"configure: a CiA 402 drive has no {mode} mode") from None
 
 
 def _clamp(value: int, bounds: tuple[int, int]) -> int:

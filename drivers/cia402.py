@@ -164,30 +164,44 @@ def command_towards(state: State, target: State) -> Command | None:
 
 
 class OperationMode(IntEnum):
-    """Modes of operation (0x6060/0x6061) this project drives."""
+    """Modes of operation (0x6060/0x6061) of CiA 402; those with a target in TARGET_OBJECT are driven."""
 
     NO_MODE = 0
+    PROFILE_POSITION = 1
     PROFILE_VELOCITY = 3
+    PROFILE_TORQUE = 4
+    HOMING = 6
+    INTERPOLATED_POSITION = 7
     CYCLIC_SYNC_POSITION = 8
     CYCLIC_SYNC_VELOCITY = 9
     CYCLIC_SYNC_TORQUE = 10
 
 
 SUPPORTED_MODE_BIT: Final[dict[OperationMode, int]] = {
+    OperationMode.PROFILE_POSITION: 1 << 0,
     OperationMode.PROFILE_VELOCITY: 1 << 2,
+    OperationMode.PROFILE_TORQUE: 1 << 3,
+    OperationMode.HOMING: 1 << 5,
+    OperationMode.INTERPOLATED_POSITION: 1 << 6,
     OperationMode.CYCLIC_SYNC_POSITION: 1 << 7,
     OperationMode.CYCLIC_SYNC_VELOCITY: 1 << 8,
     OperationMode.CYCLIC_SYNC_TORQUE: 1 << 9,
 }
-"""Bits of 0x6502 (supported drive modes)."""
+"""Bits of 0x6502 (supported drive modes); bit 1 (velocity mode, vl) is a frequency-inverter mode."""
 
-TARGET_OBJECT: Final[dict[OperationMode, int]] = {
-    OperationMode.PROFILE_VELOCITY: 0x60FF,
-    OperationMode.CYCLIC_SYNC_POSITION: 0x607A,
-    OperationMode.CYCLIC_SYNC_VELOCITY: 0x60FF,
-    OperationMode.CYCLIC_SYNC_TORQUE: 0x6071,
+TARGET_OBJECT: Final[dict[OperationMode, tuple[int, int]]] = {
+    OperationMode.PROFILE_VELOCITY: (0x60FF, 0),
+    OperationMode.PROFILE_TORQUE: (0x6071, 0),
+    OperationMode.INTERPOLATED_POSITION: (0x60C1, 1),
+    OperationMode.CYCLIC_SYNC_POSITION: (0x607A, 0),
+    OperationMode.CYCLIC_SYNC_VELOCITY: (0x60FF, 0),
+    OperationMode.CYCLIC_SYNC_TORQUE: (0x6071, 0),
 }
-"""The object each mode takes its set-point from: target position, velocity or torque."""
+"""The object (index, sub-index) each mode the driver runs cycle by cycle takes its set-point from:
+target torque, velocity, position, or the interpolation data record's first set-point."""
+
+CW_ENABLE_IP_BIT = 0x0010
+"""Controlword bit 4 in interpolated position mode: interpolation runs while it is set."""
 
 
 # Emergency error codes (CiA 301 table 21, CiA 402 annex) and the error register bits they set (0x1001).

@@ -45,7 +45,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Final
@@ -53,14 +53,23 @@ from typing import Final
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from drivers.canopen_servo import OPERATION_MODE_FOR, CanopenServo, CanopenServoError, Feedback
-from drivers.cia402 import OperationMode, State
+from drivers.canopen_servo import TORQUE_MODES, CanopenServo, CanopenServoError, DriveSettingError, Feedback
+from drivers.cia402 import State
 from drivers.daq_protocol import STATUS_CAP_RANGE, STATUS_ENCODER_FAULT, DecoderStats
 from drivers.serial_daq import DEFAULT_BAUDRATE, DaqError, SampleBlock, SerialDaq
 from model.errors import UserInputError, describe_validation_error
 from rig.config import RigConfig
 from rig.faults import DeviceFaultError
-from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, RigError, RigFaultError, Segment
+from rig.interface import (
+    SAMPLE_COLUMNS,
+    Block,
+    ControlMode,
+    ModeRefusedError,
+    Rig,
+    RigError,
+    RigFaultError,
+    Segment,
+)
 from rig.safety import NO_ABORT, envelope_breach, limits_vector
 
 logger = logging.getLogger(__name__)
@@ -318,11 +327,22 @@ class HardwareRig(Rig):
                 " CiA 402 drive has no voltage mode: use current, velocity or position"
             )
         super().check_segment(segment)
+        self.servo.choose(segment.mode)  # a mode the drive cannot play: refused before anything moves
         if self._load is None and np.any(np.asarray(segment.tau_ext) != 0.0):
             raise RigError(
                 f"rig {self.config.name!r}: segment {segment.label!r} asks for a load torque τ_ext, and"
                 " this bench has no load actuator: run it with tau_ext 0"
             )
+
+    def check_modes(self, modes: Collection[ControlMode]) -> list[str]:
+        """The drive mode each program runs in and why (`CanopenServo.choose`), or the refusal."""
+        lines = []
+        for mode in modes:
+            try:
+                lines.append(f"node {self.servo.settings.node_id}: {self.servo.choose(mode)}")
+            except DriveSettingError as exc:
+                raise ModeRefusedError(f"rig {self.config.name!r}: {exc}") from None
+        return lines
 
     def record_raw_to(self, run_dir: Path) -> None:
         self.servo.record_to(run_dir / RAW_CAN_LOG)
@@ -402,14 +422,13 @@ class HardwareRig(Rig):
         return {name: rows[:, i] for i, name in enumerate(SAMPLE_COLUMNS)}, code
 
     def _enter_mode(self, mode: ControlMode) -> None:
-        """Configure the drive for `mode` if it runs another: disable, remap, enable."""
-        wanted: OperationMode | None = OPERATION_MODE_FOR.get(mode)
-        if wanted is None:
+        """Configure the drive for `mode` if it plays another program now: disable, remap, enable."""
+        if mode == ControlMode.VOLTAGE:
             raise RigError(f"rig {self.config.name!r}: a CiA 402 drive has no {mode} mode")
-        if self.servo.mode == wanted:
+        if self.servo.choice is not None and self.servo.choice == self.servo.choose(mode):
             return
         self.servo.disable()
-        self.servo.configure(wanted)
+        self.servo.configure(mode)
         self.servo.enable()
 
     def _cycle_through(self, setpoint: np.ndarray, tau_ext: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -418,8 +437,9 @@ class HardwareRig(Rig):
         rows = np.empty((n, len(SAMPLE_COLUMNS)))
         t_sync = np.empty(n)
         constants = self.constants
-        current_mode = self.servo.mode == OperationMode.CYCLIC_SYNC_TORQUE
-        position_mode = self.servo.mode == OperationMode.CYCLIC_SYNC_POSITION
+        current_mode = self.servo.mode in TORQUE_MODES
+        choice = self.servo.choice
+        position_mode = choice is not None and choice.program == ControlMode.POSITION
         log = self.cycle_log
         code = NO_ABORT
         done = 0

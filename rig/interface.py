@@ -15,7 +15,7 @@ import importlib.metadata
 import math
 import threading
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
@@ -48,6 +48,11 @@ commanded (both always present: a drive knows both), `setpoint` the segment's se
 class RigError(UserInputError):
     """A command the rig refuses before anything moves: a set-point beyond its limits, a mode or a load
     it has not, an unknown backend. The user can fix it in the experiment or the rig file."""
+
+
+class ModeRefusedError(RigError):
+    """The rig cannot play a kind of program an experiment needs (a CiA 402 drive without the mode):
+    told before anything moves; a campaign skips that experiment and goes on."""
 
 
 class RigFaultError(DeviceFaultError):
@@ -253,6 +258,11 @@ class Rig(ABC):
 
     model: HarmonicDriveModel | None = None
     """The model a simulated rig runs (None on hardware): recorded with each run."""
+
+    def check_modes(self, modes: Collection[ControlMode]) -> list[str]:
+        """Before anything moves: how this rig plays programs of `modes`, one line each (none: as
+        asked). A mode it cannot play is a UserInputError in one line saying what the rig offers."""
+        return []
 
     def check_segment(self, segment: Segment) -> None:
         """Refuse a segment whose set-points the rig cannot or must not follow (RigError)."""

@@ -20,6 +20,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final, cast
@@ -36,11 +37,13 @@ from drivers.canopen_config import (
     PDO_INVALID,
     RPDO_COMM,
     RPDO_MAP,
+    SI_UNIT_VELOCITY,
     TPDO_COMM,
     TPDO_MAP,
     is_mapping_object,
 )
 from drivers.cia402 import (
+    CW_ENABLE_IP_BIT,
     EMCY_COMMUNICATION,
     EMCY_FOLLOWING_ERROR,
     EMCY_HEARTBEAT,
@@ -52,6 +55,7 @@ from drivers.cia402 import (
     SW_MODE_BIT12,
     SW_MODE_BIT13,
     SW_TARGET_REACHED,
+    TARGET_OBJECT,
     Command,
     OperationMode,
     State,
@@ -89,6 +93,9 @@ EMCY_FOR_ABORT: Final = {
 """The emergency code a breach of the drive's envelope sends."""
 
 NMT_OPERATIONAL, NMT_STOPPED = "OPERATIONAL", "STOPPED"
+LOAD_COB_ID: Final = 0x6E0
+"""A sim-only frame (unused in CiA 301's predefined set): the load torque τ_ext [N·m] as a little-endian
+float64, applied from the next SYNC. A host in another process sets the load with it."""
 WATCH_PERIOD_S: Final = 0.005  # heartbeat consumer resolution
 STANDSTILL_RAD_S: Final = 0.5  # a quick stop ends, PV reports zero speed, below this [rad/s]
 PV_REACHED_RAD_S: Final = 2.0  # PV target reached within this [rad/s]
@@ -103,13 +110,21 @@ class _Pdo:
 
 
 class _HeartbeatWatch(can.Listener):
-    """The time each node's heartbeat was last heard (fed by the bus's receive thread)."""
+    """The time each node's heartbeat was last heard, and node guarding requests to this node (canopen's
+    listener drops remote frames); fed by the bus's receive thread."""
 
-    def __init__(self) -> None:
+    def __init__(self, node_id: int, on_guard: Callable[[], None]) -> None:
         self.heard_s: dict[int, float] = {}
+        self.guarded_s: float | None = None
+        self.guard_cob_id = 0x700 + node_id
+        self._on_guard = on_guard
 
     def on_message_received(self, msg: can.Message) -> None:
-        if 0x701 <= msg.arbitration_id <= 0x77F and not msg.is_remote_frame and len(msg.data) == 1:
+        if msg.is_remote_frame:
+            if msg.arbitration_id == self.guard_cob_id:
+                self.guarded_s = time.monotonic()
+                self._on_guard()
+        elif 0x701 <= msg.arbitration_id <= 0x77F and len(msg.data) == 1:
             self.heard_s[msg.arbitration_id - 0x700] = time.monotonic()
 
 
@@ -154,9 +169,13 @@ class Cia402Twin:
         self._pv_reference_rad_s = 0.0
         self._fault_bits = 0
         self._lost: set[int] = set()
+        self._guard_lost = False
+        self._guard_toggle = 0
+        self._supported_bits = 0
+        self._torque_reference_permille = 0.0  # profile torque: the ramped target
 
         self.network = RecordedNetwork(bus)  # its periodic heartbeat thread ends when stopped
-        self._watch = _HeartbeatWatch()
+        self._watch = _HeartbeatWatch(node_id, self._answer_guard)
         cast(list[can.Listener], self.network.listeners).append(self._watch)
         self.node = canopen.LocalNode(node_id, str(eds_path))
         self.network.add_node(self.node)
@@ -164,6 +183,7 @@ class Cia402Twin:
         self.network.subscribe(0, self._on_nmt)
         self._sync_cob_id = self._get(0x1005) & 0x7FF if self._has(0x1005) else 0x080
         self.network.subscribe(self._sync_cob_id, self._on_sync)
+        self.network.subscribe(LOAD_COB_ID, self._on_load)
         self._reset_application()
         self.network.connect()
         self._boot()
@@ -224,6 +244,16 @@ class Cia402Twin:
             self._store(index, 0, 0)
         self._store(0x607A, 0, 0)
         self._store(0x60FF, 0, 0)
+        self._store(0x60C1, 1, 0)
+        self._supported_bits = self._get_or(0x6502, -1)
+        if self._supported_bits < 0:  # the EDS gives no value: the modes whose target objects it has
+            self._supported_bits = sum(
+                bit
+                for m, bit in SUPPORTED_MODE_BIT.items()
+                if m in TARGET_OBJECT and self._has(*TARGET_OBJECT[m])
+            )
+            self._store(0x6502, 0, self._supported_bits)
+        self._torque_reference_permille = 0.0
         self._controlword = 0
         self._fault_bits = 0
         self._pending.clear()
@@ -360,6 +390,10 @@ class Cia402Twin:
             if operational:
                 self._send_tpdos()
 
+    def _on_load(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) == 8:
+            self.tau_ext_nm = float(np.frombuffer(bytes(data), "<f8")[0])
+
     def _cycles_per_sync(self) -> int:
         period_us = self._get_or(0x1006, 0)
         return max(1, round(period_us * 1e-6 / self.period_s)) if period_us else 1
@@ -393,24 +427,43 @@ class Cia402Twin:
             return ControlMode.VELOCITY, np.zeros(n)
         mode = self._active_mode()
         units = self._position_units_per_rad()
-        if mode == OperationMode.CYCLIC_SYNC_TORQUE:
-            permille = self._get_or(0x6071, 0)
+        if mode in (OperationMode.CYCLIC_SYNC_TORQUE, OperationMode.PROFILE_TORQUE):
+            permille = float(self._get_or(0x6071, 0))
+            if mode == OperationMode.PROFILE_TORQUE:
+                permille = self._torque_ramp(permille, n)
             limit = self._get_or(0x6072, _INT16)  # max torque, ‰
             permille = min(max(permille, -limit), limit)
             current = permille * self.rated_torque_nm / 1000.0 / self.model.motor.K_m
             limit_a = self._get_or(0x6073, _INT16) * self.rated_current_a / 1000.0  # max current
             current = min(max(current, -limit_a), limit_a)
             return ControlMode.CURRENT, np.full(n, current)
-        if mode == OperationMode.CYCLIC_SYNC_POSITION:
-            target = self._get_or(0x607A, 0) / units
+        if mode in (OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION):
+            if mode == OperationMode.CYCLIC_SYNC_POSITION:
+                target = self._get_or(0x607A, 0) / units
+            elif self._controlword & CW_ENABLE_IP_BIT:
+                target = self._get_or(0x60C1, 0, 1) / units
+            else:  # interpolation not enabled: hold the last position
+                held = self._position_target_rad
+                target = held if held is not None else self.last_sample.get("theta_m", 0.0)
             start = self._position_target_rad if self._position_target_rad is not None else target
             self._position_target_rad = target
             return ControlMode.POSITION, np.linspace(start, target, n + 1)[1:]  # interpolated over the SYNC
+        velocity_units = self._velocity_units_per_rad_s()
         if mode == OperationMode.CYCLIC_SYNC_VELOCITY:
-            return ControlMode.VELOCITY, np.full(n, self._velocity_target_rad_s(units))
+            return ControlMode.VELOCITY, np.full(n, self._velocity_target_rad_s(velocity_units))
         if mode == OperationMode.PROFILE_VELOCITY:
-            return ControlMode.VELOCITY, self._profile(n, self._velocity_target_rad_s(units), units)
+            target = self._velocity_target_rad_s(velocity_units)
+            return ControlMode.VELOCITY, self._profile(n, target, velocity_units)
         return ControlMode.CURRENT, np.zeros(n)  # no mode, or one the drive lacks: no torque
+
+    def _torque_ramp(self, target_permille: float, n: int) -> float:
+        """Profile torque: the torque reference moves to the target at the torque slope 0x6087 [‰/s]."""
+        slope = self._get_or(0x6087, 0) * n * self.period_s
+        step = target_permille - self._torque_reference_permille
+        if slope > 0:
+            step = min(max(step, -slope), slope)
+        self._torque_reference_permille += step
+        return self._torque_reference_permille
 
     def _velocity_target_rad_s(self, units: float) -> float:
         target = self._get_or(0x60FF, 0) / units
@@ -443,8 +496,8 @@ class Cia402Twin:
             mode = OperationMode(self._get_or(0x6060, 0))
         except ValueError:
             return None
-        supported = self._get_or(0x6502, 0)
-        return mode if mode in SUPPORTED_MODE_BIT and supported & SUPPORTED_MODE_BIT[mode] else None
+        usable = mode in TARGET_OBJECT and self._supported_bits & SUPPORTED_MODE_BIT[mode]
+        return mode if usable else None
 
     def _apply_controlword(self, controlword: int) -> None:
         command = decode_controlword(controlword)
@@ -491,7 +544,7 @@ class Cia402Twin:
         if self.state == State.OPERATION_ENABLED and mode is not None:
             omega = self.last_sample.get("omega_m", 0.0)
             if mode == OperationMode.PROFILE_VELOCITY:
-                target = self._velocity_target_rad_s(self._position_units_per_rad())
+                target = self._velocity_target_rad_s(self._velocity_units_per_rad_s())
                 ramped = abs(self._pv_reference_rad_s - target) < 1e-9
                 if ramped and abs(omega - target) < PV_REACHED_RAD_S:
                     extra |= SW_TARGET_REACHED
@@ -506,7 +559,7 @@ class Cia402Twin:
         units = self._position_units_per_rad()
         theta, omega, current = (self.last_sample[c] for c in ("theta_m", "omega_m", "i_a"))
         self._store(0x6064, 0, _saturate(round(theta * units), _INT32))
-        self._store(0x606C, 0, _saturate(round(omega * units), _INT32))
+        self._store(0x606C, 0, _saturate(round(omega * self._velocity_units_per_rad_s()), _INT32))
         torque = current * self.model.motor.K_m
         self._store(0x6077, 0, _saturate(round(torque / self.rated_torque_nm * 1000), _INT16))
         self._store(0x6078, 0, _saturate(round(current / self.rated_current_a * 1000), _INT16))
@@ -519,7 +572,19 @@ class Cia402Twin:
         counts = self.config.sensors.encoder_counts_per_rev or 1 << 17
         return counts / (2 * math.pi)
 
-    # --- heartbeat consumer -----------------------------------------------------------------------
+    def _velocity_units_per_rad_s(self) -> float:
+        """Velocity units per rad/s: rpm or increments/s as 0x60A9 says, else position units per second."""
+        unit = SI_UNIT_VELOCITY.get(self._get_or(0x60A9, 0))
+        return 60 / (2 * math.pi) if unit == "rpm" else self._position_units_per_rad()
+
+    # --- heartbeat consumer and life guarding -----------------------------------------------------
+
+    def _answer_guard(self) -> None:
+        """A node guarding request: the NMT state with the toggle bit, alternating from 0."""
+        codes = {name: code for code, name in canopen.nmt.NMT_STATES.items()}
+        state = codes.get(self.node.nmt.state, 0)
+        self.network.send_message(self._watch.guard_cob_id, bytes([state | self._guard_toggle]))
+        self._guard_toggle ^= 0x80
 
     def _watch_heartbeats(self) -> None:
         while not self._closing.wait(WATCH_PERIOD_S):
@@ -533,8 +598,33 @@ class Cia402Twin:
                         self._lost.discard(node_id)
                     elif node_id not in self._lost:
                         self._lost.add(node_id)
-                        logger.warning("twin %d: heartbeat of node %d lost", self.node.id, node_id)
-                        self._fault(EMCY_HEARTBEAT)
+                        self._say_lost(f"heartbeat of node {node_id}", now - heard, timeout_s)
+                self._watch_life_guard(now)
+
+    def _watch_life_guard(self, now: float) -> None:
+        """Life guarding: no guarding request for guard time 0x100C × life time factor 0x100D."""
+        guarded = self._watch.guarded_s
+        life_s = self._get_or(0x100C, 0) * self._get_or(0x100D, 0) / 1000.0
+        if guarded is None or life_s <= 0:
+            return  # guarding starts with the first request, and is off while either object is 0
+        if now - guarded <= life_s:
+            self._guard_lost = False
+        elif not self._guard_lost:
+            self._guard_lost = True
+            self._say_lost("node guarding by the host", now - guarded, life_s)
+
+    def _say_lost(self, what: str, silent_s: float, timeout_s: float) -> None:
+        powered = self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
+        logger.warning(
+            "twin %d: %s lost: none for %.0f ms (timeout %.0f ms): EMCY 0x%04X, FAULT%s",
+            self.node.id,
+            what,
+            silent_s * 1e3,
+            timeout_s * 1e3,
+            EMCY_HEARTBEAT,
+            ", torque off" if powered else "",
+        )
+        self._fault(EMCY_HEARTBEAT)
 
     def _consumers(self) -> list[tuple[int, float]]:
         if not self._has(0x1016, 0):

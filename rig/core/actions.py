@@ -12,6 +12,7 @@ model to that file instead, `report_dir=` writes the report (plots, tables, summ
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from datetime import UTC, datetime
@@ -38,7 +39,7 @@ from rig.core.documents import (
 )
 from rig.experiments import CAMPAIGN, CAMPAIGN_ORDER, EXPERIMENTS, experiment_named
 from rig.faults import DeviceFaultError
-from rig.interface import Rig
+from rig.interface import ModeRefusedError, Rig
 from rig.runfile import json_text
 from rig.runner import Progress, RunHooks, RunOutcome, make_params, run_experiment
 from rig.status import RunStatus
@@ -47,6 +48,8 @@ from rig.store import ARTIFACTS_DIR, RunStore, load_runs, new_run_id
 if TYPE_CHECKING:
     from model.gaps import GapsResult
     from rig.identification import Identification
+
+logger = logging.getLogger(__name__)
 
 ANALYSES_DIR = "analyses"
 RESULT_FILE = "result.json"
@@ -153,9 +156,12 @@ def execute_plan(
     hooks: RunHooks | None = None,
     on_run: Callable[[RunDocument], None] | None = None,
     should_continue: Callable[[], bool] = lambda: True,
+    on_skip: Callable[[str, str], None] | None = None,
 ) -> list[RunDocument]:
     """Play a plan's runs in turn on `rig` (or on a fresh rig per run from `config`); each run's document.
 
+    An experiment the rig cannot play (`ModeRefusedError`, before anything moves) is refused alone and
+    skipped in a campaign: logged and told to `on_skip` (experiment, reason).
     A run that ends aborted stops a campaign unless the plan says keep_going; `should_continue` is asked
     before each run (an abort of the whole job). A device fault always stops it: once the run it ended
     is recorded and told (`on_run`), the fault is raised again for the caller to see.
@@ -169,7 +175,18 @@ def execute_plan(
         if progress is not None:
             report = _share_of(progress, index, count)
         run_hooks = hooks if index == 0 or hooks is None else replace(hooks, run_id=None)
-        outcome = run_experiment(planned.experiment, config, planned.params, store, report, rig, run_hooks)
+        try:
+            outcome = run_experiment(
+                planned.experiment, config, planned.params, store, report, rig, run_hooks
+            )
+        except ModeRefusedError as exc:
+            if count == 1:
+                raise
+            # A campaign skips what this rig cannot play (told before anything moved) and goes on.
+            logger.warning("campaign: %s skipped: %s", planned.experiment, exc)
+            if on_skip is not None:
+                on_skip(planned.experiment, str(exc))
+            continue
         document = run_document(store, outcome.run_id, outcome)
         documents.append(document)
         if on_run is not None:

@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict
 from model.errors import UserInputError
 from model.run import Run
 from rig.config import RigConfig, load_rig_config
-from rig.interface import Segment
+from rig.interface import ControlMode, Segment
 
 
 class ProgramError(UserInputError):
@@ -99,6 +99,8 @@ class Experiment(ABC):
     name: ClassVar[str]
     summary: ClassVar[str]
     Params: ClassVar[type[ExperimentParams]]
+    needs: ClassVar[frozenset[ControlMode]]
+    """The kinds of program (segment modes) it plays: a rig that cannot play one refuses it up front."""
 
     @abstractmethod
     def program(self, params: Any, ctx: RigContext) -> list[Segment]:

@@ -47,7 +47,7 @@ from model.run import Run
 from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext, segment_rows
 from rig.experiments.plots import new_figure, save_figure
 from rig.experiments.tracking import check_stroke, output_segment
-from rig.interface import Segment
+from rig.interface import ControlMode, Segment
 
 SWEEPS = ("sweep-out", "sweep-back")
 COHERENCE_BAND_HZ = (1.0, 10.0)
@@ -250,6 +250,7 @@ class Chirp(Experiment):
     name = "chirp"
     summary = "periodic sweep 0.5–20 Hz on a mean speed; plant and position FRFs with coherence (Bode)"
     Params = ChirpParams
+    needs = frozenset({ControlMode.POSITION})
 
     def program(self, params: ChirpParams, ctx: RigContext) -> list[Segment]:
         nyquist_hz = ctx.rate_hz / 2

@@ -94,6 +94,7 @@ class LoadVariation(Experiment):
     name = "load-variation"
     summary = "the speed sweep under several external loads; friction level against load"
     Params = LoadVariationParams
+    needs = frozenset({ControlMode.POSITION})
 
     def program(self, params: LoadVariationParams, ctx: RigContext) -> list[Segment]:
         segments = []

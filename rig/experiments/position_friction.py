@@ -166,6 +166,7 @@ class PositionFriction(Experiment):
     name = "position-friction"
     summary = "constant-speed passes over the stroke both ways; friction against position and angle"
     Params = PositionFrictionParams
+    needs = frozenset({ControlMode.VELOCITY})
 
     def program(self, params: PositionFrictionParams, ctx: RigContext) -> list[Segment]:
         return pass_program(params, ctx)

@@ -94,6 +94,7 @@ class Pulse(Experiment):
     name = "pulse"
     summary = "open-loop voltage pulses both ways; displacement, peak speed, breakaway and stop per pulse"
     Params = PulseParams
+    needs = frozenset({ControlMode.VOLTAGE})
 
     def program(self, params: PulseParams, ctx: RigContext) -> list[Segment]:
         on, rest = ctx.cycles(params.width_s), ctx.cycles(params.period_s - params.width_s)

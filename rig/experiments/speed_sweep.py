@@ -111,6 +111,7 @@ class SpeedSweep(Experiment):
     name = "speed-sweep"
     summary = "steady speeds both ways; friction torque against velocity from the current"
     Params = SpeedSweepParams
+    needs = frozenset({ControlMode.VELOCITY})
 
     def program(self, params: SpeedSweepParams, ctx: RigContext) -> list[Segment]:
         return sweep_program(params, ctx)

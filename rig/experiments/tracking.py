@@ -188,6 +188,7 @@ class Step(Experiment):
     name = "step"
     summary = "output position step (1 rad) and back; settling, rise, overshoot of the load angle"
     Params = StepParams
+    needs = frozenset({ControlMode.POSITION})
 
     def program(self, params: StepParams, ctx: RigContext) -> list[Segment]:
         check_stroke(
@@ -301,6 +302,7 @@ class Sine(Experiment):
     name = "sine"
     summary = "sinusoidal output position (0.5 Hz); RMS tracking error, gain and phase of the load angle"
     Params = SineParams
+    needs = frozenset({ControlMode.POSITION})
 
     def program(self, params: SineParams, ctx: RigContext) -> list[Segment]:
         check_stroke(ctx, 0.0, 2 * params.amp_out_rad, self.name, "amp_out_rad")
@@ -424,6 +426,7 @@ class Ramp(Experiment):
     name = "ramp"
     summary = "slow output ramp up and down; stick-slip amplitude of the load angle, stick phases"
     Params = RampParams
+    needs = frozenset({ControlMode.POSITION})
 
     def program(self, params: RampParams, ctx: RigContext) -> list[Segment]:
         travel = params.speed_out_rad_s * params.duration_s
