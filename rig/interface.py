@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from model.errors import UserInputError
+from model.feedforward import FeedForwardTrack
 from model.params import HarmonicDriveModel
 from rig.config import RigConfig
 from rig.faults import DeviceFaultError
@@ -62,12 +63,18 @@ class RigFaultError(DeviceFaultError):
 
 @dataclass(frozen=True)
 class Segment:
-    """One stretch of an experiment: a mode, one set-point per cycle, the load torque per cycle."""
+    """One stretch of an experiment: a mode, one set-point per cycle, the load torque per cycle.
+
+    `feedforward` (position mode, rigs with `supports_feedforward`): a model's track, one row per cycle;
+    the drive follows its planned angle and adds its torque (`model.feedforward`). The recorded
+    `setpoint` stays the segment's own.
+    """
 
     mode: ControlMode
     setpoint: np.ndarray
     tau_ext: np.ndarray | float = 0.0
     label: str = ""
+    feedforward: FeedForwardTrack | None = None
 
     @property
     def cycles(self) -> int:
@@ -173,9 +180,17 @@ class Rig(ABC):
                 return self._abort(SegmentResult(done, "aborted: quick stop requested"))
             n = min(chunk, segment.cycles - done)
             try:
-                block, code = self._run_cycles(
-                    segment.mode, segment.setpoint[done : done + n], tau[done : done + n]
-                )
+                if segment.feedforward is None:
+                    block, code = self._run_cycles(
+                        segment.mode, segment.setpoint[done : done + n], tau[done : done + n]
+                    )
+                else:
+                    block, code = self._run_cycles(
+                        segment.mode,
+                        segment.setpoint[done : done + n],
+                        tau[done : done + n],
+                        feedforward=segment.feedforward.part(done, done + n),
+                    )
             except DeviceFaultError as fault:
                 self._abort(SegmentResult(done, f"aborted: {fault}"))
                 raise
@@ -196,7 +211,8 @@ class Rig(ABC):
         """Run len(setpoint) cycles; return the samples taken (SAMPLE_COLUMNS) and an abort code.
 
         Must check the envelope every cycle with `rig.safety.envelope_breach` and stop at the first
-        breach, returning the samples up to and including it.
+        breach, returning the samples up to and including it. A backend with `supports_feedforward`
+        also takes `feedforward=` (a FeedForwardTrack of these cycles) for position segments that carry one.
         """
 
     @abstractmethod
@@ -259,6 +275,9 @@ class Rig(ABC):
     model: HarmonicDriveModel | None = None
     """The model a simulated rig runs (None on hardware): recorded with each run."""
 
+    supports_feedforward: bool = False
+    """Whether `_run_cycles` takes a feed-forward track (`Segment.feedforward`)."""
+
     def check_modes(self, modes: Collection[ControlMode]) -> list[str]:
         """Before anything moves: how this rig plays programs of `modes`, one line each (none: as
         asked). A mode it cannot play is a UserInputError in one line saying what the rig offers."""
@@ -282,6 +301,18 @@ class Rig(ABC):
                 f"segment {segment.label!r}: {segment.mode} set-point {peak:g} {unit}"
                 f" beyond the rig's {bound:g} {unit}"
             )
+        if segment.feedforward is not None:
+            if segment.mode != ControlMode.POSITION or not self.supports_feedforward:
+                raise RigError(
+                    f"segment {segment.label!r}: a feed-forward track needs a position segment on a rig"
+                    f" whose drive takes one; rig {self.config.name!r} ({self.config.backend}) with"
+                    f" {segment.mode} set-points does not"
+                )
+            if segment.feedforward.cycles != segment.cycles:
+                raise RigError(
+                    f"segment {segment.label!r}: feed-forward track of {segment.feedforward.cycles} cycles"
+                    f" for {segment.cycles} set-points"
+                )
         if segment.mode == ControlMode.POSITION:
             out = sp * self.gear_ratio
             if out.min() < limits.travel_min_out_rad or out.max() > limits.travel_max_out_rad:

@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 
+from model.feedforward import FeedForwardTrack
 from model.params import HarmonicDriveModel, load_model
 from model.plant import Plant
 from rig.config import RigConfig
@@ -47,8 +48,16 @@ class SimRig(Rig):
     def _quick_stop(self) -> None:
         return None  # nothing runs between cycles; run_segment sees the stop request
 
-    def _run_cycles(self, mode: ControlMode, setpoint: np.ndarray, tau_ext: np.ndarray) -> tuple[Block, int]:
-        rows, code = self.drive.run(mode, setpoint, tau_ext, self.t_s)
+    supports_feedforward = True
+
+    def _run_cycles(
+        self,
+        mode: ControlMode,
+        setpoint: np.ndarray,
+        tau_ext: np.ndarray,
+        feedforward: FeedForwardTrack | None = None,
+    ) -> tuple[Block, int]:
+        rows, code = self.drive.run(mode, setpoint, tau_ext, self.t_s, feedforward)
         self.t_s += rows.shape[0] * self.period_s
         if self.config.pace == "realtime" and self._wall_start is not None:
             ahead = self._wall_start + self.t_s - time.monotonic()

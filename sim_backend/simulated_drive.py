@@ -3,7 +3,9 @@
 Each cycle: measure (encoder quantization, filtered encoder-difference speed, current and output-angle
 noise), check the envelope, compute the command (voltage as given; current as given or from the
 velocity/position loops, limited by what the bus voltage can push), record the sample, then integrate
-the plant over the cycle with that command held. The in-process backend and the CANopen twin both use
+the plant over the cycle with that command held. A feed-forward track (`model.feedforward`) replaces the
+position loop's target by its planned motor angle and adds its torque to the velocity loop's current, as
+a drive's torque offset does. The in-process backend and the CANopen twin both use
 it, so the simulated drive behaves the same whichever way it is reached.
 """
 
@@ -15,9 +17,10 @@ import numpy as np
 from numba import njit
 
 from model import kernel as k
+from model.feedforward import FF_THETA, N_FF_COLUMNS, FeedForwardTrack, loop_torque_nm
 from model.plant import Plant
 from rig.config import RigConfig
-from rig.control import N_CONTROL_STATE, S_PREV_POSITION_REF, gains_vector, position_p, velocity_pi
+from rig.control import N_CONTROL_STATE, S_PREV_POSITION_REF, S_RATE, gains_vector, position_p, velocity_pi
 from rig.interface import SAMPLE_COLUMNS, ControlMode
 from rig.safety import NO_ABORT, envelope_breach, limits_vector
 
@@ -30,9 +33,10 @@ MODE_CODES = {
 C_T, C_U, C_I_CMD, C_TAU, C_THETA_M, C_OMEGA_M, C_THETA_L, C_I_A, C_SETPOINT = range(len(SAMPLE_COLUMNS))
 
 # Drive constants vector: what the drive knows of its motor and bus, and its sensors.
-D_K_B, D_R, D_SUPPLY, D_QUANTUM, D_FILTER_ALPHA, D_CURRENT_NOISE, D_LOAD_NOISE, D_PERIOD = range(8)
+D_K_B, D_R, D_SUPPLY, D_QUANTUM, D_FILTER_ALPHA, D_CURRENT_NOISE, D_LOAD_NOISE, D_PERIOD, D_K_M = range(9)
 # Sensor state: last quantized position [rad], filtered speed [rad/s].
 M_THETA_PREV, M_OMEGA = range(2)
+_NO_FEEDFORWARD = np.empty((0, N_FF_COLUMNS))
 
 
 @njit(cache=True)
@@ -53,8 +57,14 @@ def run_cycles(
     dt: float,
     t0: float,
     out: np.ndarray,
+    ff: np.ndarray,
+    ff_band: float,
 ) -> tuple[int, int]:
-    """Run len(setpoint) cycles from time t0; fill `out` rows (SAMPLE_COLUMNS). Returns (rows, abort)."""
+    """Run len(setpoint) cycles from time t0; fill `out` rows (SAMPLE_COLUMNS). Returns (rows, abort).
+
+    `ff`: a feed-forward track's rows for these cycles (position mode), or an empty array for none.
+    """
+    has_ff = ff.shape[0] > 0
     period = drive[D_PERIOD]
     quantum = drive[D_QUANTUM]
     held = np.empty(substeps)
@@ -82,9 +92,12 @@ def run_cycles(
             elif mode == 2:
                 i_cmd = velocity_pi(gains, control_state, sp, omega_meas, period)
             else:
-                position_error = sp - theta_meas
-                omega_ref = position_p(gains, control_state, sp, theta_meas, period)
-                i_cmd = velocity_pi(gains, control_state, omega_ref, omega_meas, period)
+                position_error = sp - theta_meas  # the envelope watches the set-point asked for
+                target = ff[c, FF_THETA] if has_ff else sp
+                offset = loop_torque_nm(ff, c, ff_band, omega_meas) / drive[D_K_M] if has_ff else 0.0
+                rate_alpha = drive[D_FILTER_ALPHA] if has_ff else 1.0
+                omega_ref = position_p(gains, control_state, target, theta_meas, period, rate_alpha)
+                i_cmd = velocity_pi(gains, control_state, omega_ref, omega_meas, period, offset)
             # The bus voltage bounds the current the drive can push at this speed.
             back_emf = drive[D_K_B] * omega_meas
             i_hi = (drive[D_SUPPLY] - back_emf) / drive[D_R]
@@ -141,6 +154,7 @@ class SimulatedDrive:
                 sensors.current_noise_a,
                 sensors.load_sensor_noise_rad,
                 period,
+                motor.K_m,
             ]
         )
         self.gains = gains_vector(config.control)
@@ -159,9 +173,15 @@ class SimulatedDrive:
         self.control_state[:] = 0.0
         self.control_state[S_PREV_POSITION_REF] = self.sensor_state[M_THETA_PREV]
         self._mode: ControlMode | None = None
+        self._compensating = False
 
     def run(
-        self, mode: ControlMode, setpoint: np.ndarray, tau_ext: np.ndarray, t0: float
+        self,
+        mode: ControlMode,
+        setpoint: np.ndarray,
+        tau_ext: np.ndarray,
+        t0: float,
+        feedforward: FeedForwardTrack | None = None,
     ) -> tuple[np.ndarray, int]:
         """Run the cycles; return the sample rows taken and the abort code."""
         n = setpoint.shape[0]
@@ -169,6 +189,12 @@ class SimulatedDrive:
             # Entering a mode, the position loop's feed-forward starts from where the motor is.
             self.control_state[S_PREV_POSITION_REF] = self.sensor_state[M_THETA_PREV]
             self._mode = mode
+        if (feedforward is not None) != self._compensating:
+            # The planned angle differs from the set-point: the rate feed-forward must not see the switch.
+            first = feedforward.theta_cmd_rad[0] if feedforward is not None else setpoint[0]
+            self.control_state[S_PREV_POSITION_REF] = first
+            self.control_state[S_RATE] = 0.0
+            self._compensating = feedforward is not None
         out = np.empty((n, len(SAMPLE_COLUMNS)))
         noise = self.rng.standard_normal((n, 2))
         rows, code = run_cycles(
@@ -188,5 +214,7 @@ class SimulatedDrive:
             self.dt_s,
             t0,
             out,
+            np.ascontiguousarray(feedforward.rows) if feedforward is not None else _NO_FEEDFORWARD,
+            feedforward.measured_band_rad_s if feedforward is not None else 0.0,
         )
         return out[:rows], code
