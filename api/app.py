@@ -40,7 +40,7 @@ from api.schemas import (
     SessionRequest,
 )
 from model.errors import UserInputError
-from model.params import load_model
+from model.params import load_model, preset_names
 from rig.config import RigConfig
 from rig.core import access, actions
 from rig.core.access import AuditEntry, KeyInfo
@@ -236,6 +236,15 @@ def models(who: Viewer) -> list[dict[str, Any]]:
     return [m.as_json() for m in actions.list_models()]
 
 
+@router.get("/models/{name}", tags=["fits"], summary="one preset as a model file (`hdrig model show --json`)")
+def model(
+    name: Annotated[str, PathParam(description="a preset name", max_length=200)], who: Viewer
+) -> dict[str, Any]:
+    if name not in preset_names():  # presets only: a path would read files of the server
+        raise ProblemError(404, f"unknown model preset {name!r} (presets: {', '.join(preset_names())})")
+    return actions.show_model(name)
+
+
 @router.post(
     "/runs",
     response_model=RunDocument | JobDocument,
@@ -392,13 +401,13 @@ def run_events(
     ] = None,
 ) -> StreamingResponse:
     document = _run(request, run_id)  # 404 before the stream starts
+    worker = _worker(request)
     try:
-        after = max(0, int(last_event_id)) if last_event_id else 0
+        after = max(0, int(last_event_id)) if last_event_id else worker.events.start_of(run_id)
     except ValueError:
         raise ProblemError(422, f"Last-Event-ID {last_event_id!r} is not an event id") from None
-    worker = _worker(request)
     return StreamingResponse(
-        _event_stream(worker, run_id, after, document),
+        _event_stream(worker, run_id, after, document, resumed=bool(last_event_id)),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
     )
@@ -413,7 +422,7 @@ def _final(event: Event, run_id: str) -> bool:
 
 
 async def _event_stream(
-    worker: RigWorker, run_id: str, after: int, document: RunDocument
+    worker: RigWorker, run_id: str, after: int, document: RunDocument, resumed: bool
 ) -> AsyncIterator[str]:
     """The run's events newer than `after`, until its final `run` event. A client that goes away only
     ends this generator: the run goes on."""
@@ -423,7 +432,7 @@ async def _event_stream(
         _final(e, run_id) for e in worker.events.since(0, run_id, limit=10**9)
     ):
         # Recorded before this service started (or its events have left the log): say how it ended.
-        if after < worker.events.last_id or after == 0:
+        if not resumed or after < worker.events.last_id:
             yield _sse(worker.events.last_id, EventKind.RUN, _clean(document.as_json()))
         return
     while True:

@@ -147,7 +147,8 @@ def test_error_inside_with_marks_aborted_with_the_text_and_keeps_data(store: Run
         writer.append(block(0, 20))
         raise RuntimeError("limit switch hit")
     entry = store.get(writer.run_id)
-    assert (entry["status"], entry["reason"], entry["samples"]) == ("aborted", "limit switch hit", 20)
+    reason = "aborted: limit switch hit"  # every stored abort reason says so (RunStatus, issue 15)
+    assert (entry["status"], entry["reason"], entry["samples"]) == ("aborted", reason, 20)
     assert len(store.read(writer.run_id)) == 20
 
 

@@ -181,3 +181,15 @@ def test_a_device_fault_faults_the_worker_until_reset_and_cancels_the_queue(stor
             worker.submit(plan_run("pulse"))
         worker.reset()
         assert worker.state == WorkerState.IDLE
+
+
+def test_a_new_reader_of_a_run_starts_at_its_job_not_in_earlier_rig_wide_events(store: RunStore) -> None:
+    with RigWorker(sim_config(), store) as worker:
+        worker.quick_stop()  # an alarm and two state events that belong to no run
+        before = worker.events.last_id
+        job = worker.wait(worker.submit(plan_run("speed-sweep", {"speeds_rad_s": [2.0]})).id, WAIT_S)
+        start = worker.events.start_of(job.id)
+        first = next(e for e in worker.events.since(start, job.id) if e.kind != EventKind.JOB)
+    assert start == before  # the job's own events (queued, then its state change to running) come next
+    assert (first.kind, first.data["state"]) == (EventKind.STATE, "running")
+    assert worker.events.start_of("queued-but-not-begun") == worker.events.last_id

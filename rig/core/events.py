@@ -74,6 +74,16 @@ class EventLog:
                         break
             return picked
 
+    def start_of(self, run_id: str) -> int:
+        """Where a new reader of one run's events starts: just before the run's first event (or its job's,
+        whose id a single run shares), or at the end of the log if there is none yet (queued) — never in
+        the rig-wide events of earlier runs."""
+        with self._changed:
+            for event in self._events:
+                if run_id in (event.run_id, event.job_id):
+                    return event.id - 1
+            return self._next_id - 1
+
     def wait(self, after_id: int, timeout_s: float) -> bool:
         """Block until an event newer than `after_id` exists (True) or the timeout passes (False)."""
         with self._changed:

@@ -297,7 +297,7 @@ class RigWorker(_JobThread):
 
     # ---- state ------------------------------------------------------------------------------------
 
-    def _set_state(self, new: WorkerState, why: str = "") -> None:
+    def _set_state(self, new: WorkerState, why: str = "", job_id: str | None = None) -> None:
         with self._lock:
             old = self.state
             if new == old:
@@ -305,7 +305,8 @@ class RigWorker(_JobThread):
             if new not in TRANSITIONS[old]:
                 raise IllegalTransitionError(f"worker state {old} cannot become {new}")
             self.state = new
-        self.events.publish(EventKind.STATE, {"state": new.value, "previous": old.value, "why": why})
+        data = {"state": new.value, "previous": old.value, "why": why}
+        self.events.publish(EventKind.STATE, data, job_id=job_id)
 
     def _ready(self) -> bool:
         return self.state == WorkerState.IDLE
@@ -434,7 +435,7 @@ class RigWorker(_JobThread):
     # ---- the job thread's side ------------------------------------------------------------------
 
     def _before(self, job: Job) -> None:
-        self._set_state(WorkerState.RUNNING, f"job {job.id}")
+        self._set_state(WorkerState.RUNNING, f"job {job.id}", job_id=job.id)
 
     def _after(self, job: Job) -> None:
         with self._lock:
