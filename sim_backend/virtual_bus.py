@@ -26,9 +26,15 @@ heartbeat, the DAQ twin's device thread, the DAQ driver's reader and the rig's c
 
 from __future__ import annotations
 
+import contextlib
+import json
+import struct
+import subprocess
+import sys
+import threading
 import time
 import uuid
-from typing import Literal
+from typing import IO, Final, Literal
 
 from pydantic import Field
 
@@ -45,8 +51,13 @@ from drivers.hardware_rig import (
 from drivers.serial_daq import SerialDaq
 from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
-from sim_backend.cia402_twin import Cia402Twin
+from sim_backend.cia402_twin import LOAD_COB_ID, Cia402Twin
 from sim_backend.daq_twin import DaqTwin, PlantStateSource
+from sim_backend.twin_process import watchdog_grace_s
+
+TWINS: Final = ("in-process", "process")
+"""The rig file's `twins:`: in this process (threads), or in a child process on a loopback TCP bus."""
+CHILD_START_TIMEOUT_S: Final = 30.0  # a child imports numpy, numba's cached loop and canopen: seconds
 
 
 class DaqTwinSettings(DaqStreamSettings):
@@ -86,9 +97,19 @@ class VirtualCanRig(HardwareRig):
         )
         self.twin: Cia402Twin | None = None
         self.daq_twin: DaqTwin | None = None
+        self.child: subprocess.Popen[str] | None = None
+        """The twins' process, when the rig file says `twins: process`."""
         self.plant_log: list[dict[str, float]] | None = None
         """When a list, the drive twin's own sample of each recorded cycle is appended (true θ_l and the
         rest, `SAMPLE_COLUMNS`): tests compare what the drivers measured with what the plant did."""
+        twins = config.extra.get("twins", "in-process")
+        if twins not in TWINS:
+            raise HardwareConfigError(
+                f"rig {config.name!r}: twins {twins!r} is not one of {', '.join(TWINS)}"
+            )
+        if twins == "process":
+            self._open_in_child(config, settings, constants, stream)
+            return
         servo_daq: SerialDaq | None = None
         try:
             bus = BusSettings(
@@ -121,6 +142,75 @@ class VirtualCanRig(HardwareRig):
             self._close_twins()  # HardwareRig released the servo and the DAQ driver
             raise
 
+    def _open_in_child(
+        self,
+        config: RigConfig,
+        settings: CanopenSettings,
+        constants: BenchConstants,
+        stream: DaqTwinSettings,
+    ) -> None:
+        """The twins in a child process (`sim_backend.twin_process`), the drivers here on its bus."""
+        self._load_sent: float | None = None
+        self._stderr_lines: list[str] = []
+        self.child = subprocess.Popen(
+            [sys.executable, "-m", "sim_backend.twin_process"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        servo_daq: SerialDaq | None = None
+        try:
+            assert self.child.stdin is not None and self.child.stdout is not None
+            spec = {"config": config.model_dump(mode="json"), "model": self.model.to_dict()}
+            self.child.stdin.write(json.dumps(spec) + "\n")
+            self.child.stdin.flush()
+            where = json.loads(self._first_line(self.child.stdout))
+            threading.Thread(target=self._keep_stderr, name="twin stderr", daemon=True).start()
+            settings = settings.model_copy(update={"interface": "hdrig-tcp", "channel": where["can"]})
+            servo_daq = SerialDaq(where["daq"], timeout_s=stream.timeout_s, clock=time.monotonic)
+            servo = CanopenServo(settings, DriveLimits.from_rig_config(config), 1.0 / config.sample_rate_hz)
+        except BaseException:
+            if servo_daq is not None:
+                servo_daq.close()
+            self._close_twins()
+            raise
+        try:
+            super().__init__(config, constants=constants, servo=servo, daq=servo_daq, load=self._send_load)
+        except BaseException:
+            self._close_twins()
+            raise
+
+    def _first_line(self, stdout: IO[str]) -> str:
+        """The child's JSON line, within CHILD_START_TIMEOUT_S; its stderr in the error otherwise."""
+        line: list[str] = []
+        reader = threading.Thread(target=lambda: line.append(stdout.readline()), daemon=True)
+        reader.start()
+        reader.join(CHILD_START_TIMEOUT_S)
+        if not line or not line[0].strip():
+            assert self.child is not None
+            self.child.kill()
+            _out, err = self.child.communicate()
+            raise RuntimeError(f"the twins' process did not start: {err.strip() or 'no answer'}")
+        return line[0]
+
+    def _keep_stderr(self) -> None:
+        child = self.child
+        if child is not None and child.stderr is not None:
+            for line in child.stderr:
+                self._stderr_lines.append(line.rstrip())
+
+    @property
+    def twin_log(self) -> list[str]:
+        """What the twins' process has written to stderr so far (its watchdog says so there)."""
+        return list(getattr(self, "_stderr_lines", []))
+
+    def _send_load(self, tau_ext_nm: float) -> None:
+        """The load torque to the twin in the other process, as the sim-only frame, when it changes."""
+        if tau_ext_nm != self._load_sent and self.servo.network is not None:
+            self.servo.network.send_message(LOAD_COB_ID, struct.pack("<d", tau_ext_nm))
+            self._load_sent = tau_ext_nm
+
     def _bus_settings(self, config: RigConfig) -> CanopenSettings:
         """The `canopen:` section on a channel of this rig's own, paced by the rig, scaled by the model."""
         settings = CanopenSettings.from_rig_config(config)
@@ -151,11 +241,26 @@ class VirtualCanRig(HardwareRig):
             self._close_twins()
 
     def _close_twins(self) -> None:
-        daq_twin, twin = self.daq_twin, self.twin
-        self.daq_twin, self.twin = None, None
+        daq_twin, twin, child = self.daq_twin, self.twin, self.child
+        self.daq_twin, self.twin, self.child = None, None, None
+        if child is not None:
+            _end_child(child, watchdog_grace_s(self.config) + 2.0)
         try:
             if daq_twin is not None:
                 daq_twin.close()
         finally:
             if twin is not None:
                 twin.close()
+
+
+def _end_child(child: subprocess.Popen[str], timeout_s: float) -> None:
+    """Close the child's stdin (it ends after its watchdog grace) and wait; SIGTERM, then kill, if not."""
+    if child.stdin is not None and not child.stdin.closed:
+        with contextlib.suppress(BrokenPipeError):  # it has gone already
+            child.stdin.close()
+    child.terminate()  # the host is closing on purpose: no grace to wait for
+    try:
+        child.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.wait()

@@ -1,0 +1,226 @@
+"""A CAN bus between processes of one machine: a hub on a loopback TCP port, python-can buses on it.
+
+`CanHub` listens on 127.0.0.1 (never another address: the frames of a simulated bench stay on this
+machine) and repeats every frame a client sends to every other client, as a CAN bus does; buses in
+the hub's own process attach without a socket (`CanHub.bus()`). `TcpCanBus` is the python-can
+interface `hdrig-tcp` (registered as a `can.interface` entry point): `can.Bus(interface="hdrig-tcp",
+channel="127.0.0.1:PORT")`, so canopen's own master can use it too.
+
+A frame is 16 bytes on the stream: arbitration id (uint32, bit 31 extended, bit 30 remote), DLC (uint8),
+3 bytes padding, 8 data bytes; TCP_NODELAY sends each at once. A hub or client that goes away closes
+the stream: the other side's `recv` then raises `can.CanOperationError`, which the servo driver meets as
+a lost drive.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import select
+import socket
+import struct
+import threading
+import time
+from typing import Any, Final
+
+import can
+
+logger = logging.getLogger(__name__)
+
+LOOPBACK: Final = "127.0.0.1"
+FRAME = struct.Struct("<IB3x8s")
+EXTENDED_BIT, REMOTE_BIT = 1 << 31, 1 << 30
+
+
+def encode(msg: can.Message) -> bytes:
+    flags = (EXTENDED_BIT if msg.is_extended_id else 0) | (REMOTE_BIT if msg.is_remote_frame else 0)
+    return FRAME.pack(msg.arbitration_id | flags, msg.dlc, bytes(msg.data).ljust(8, b"\0"))
+
+
+def decode(record: bytes, channel: str) -> can.Message:
+    ident, dlc, data = FRAME.unpack(record)
+    remote = bool(ident & REMOTE_BIT)
+    return can.Message(
+        timestamp=time.time(),
+        arbitration_id=ident & 0x1FFFFFFF,
+        is_extended_id=bool(ident & EXTENDED_BIT),
+        is_remote_frame=remote,
+        dlc=dlc,
+        data=b"" if remote else data[:dlc],
+        channel=channel,
+    )
+
+
+def loopback_address(channel: str) -> tuple[str, int]:
+    """`127.0.0.1:PORT` (or `localhost:PORT`) as an address; ValueError for anything off this machine."""
+    host, sep, port = str(channel).rpartition(":")
+    if not sep or host not in (LOOPBACK, "localhost") or not port.isdigit():
+        raise ValueError(f"hdrig-tcp channel {channel!r}: expected 127.0.0.1:PORT (loopback only)")
+    return LOOPBACK, int(port)
+
+
+class TcpCanBus(can.BusABC):
+    """A client of a `CanHub`: python-can interface `hdrig-tcp`, channel `127.0.0.1:PORT`."""
+
+    def __init__(self, channel: Any, **kwargs: Any) -> None:
+        address = loopback_address(channel)
+        try:
+            self._sock = socket.create_connection(address, timeout=2.0)
+        except OSError as exc:
+            raise can.CanInitializationError(f"hdrig-tcp: no hub at {channel}: {exc.strerror}") from None
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock.settimeout(None)
+        self._buffer = b""
+        self._send_lock = threading.Lock()
+        self.channel_info = f"hdrig-tcp {channel}"
+        self._channel = str(channel)
+        super().__init__(channel, **kwargs)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        try:
+            with self._send_lock:
+                self._sock.sendall(encode(msg))
+        except OSError as exc:
+            raise can.CanOperationError(f"hdrig-tcp {self._channel}: hub gone: {exc}") from exc
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while len(self._buffer) < FRAME.size:
+            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                ready, _, _ = select.select([self._sock], [], [], wait)
+                if not ready:
+                    return None, False
+                chunk = self._sock.recv(64 * FRAME.size)
+            except (OSError, ValueError) as exc:  # ValueError: closed by shutdown() meanwhile
+                raise can.CanOperationError(f"hdrig-tcp {self._channel}: hub gone: {exc}") from exc
+            if not chunk:
+                raise can.CanOperationError(f"hdrig-tcp {self._channel}: the hub closed the bus")
+            self._buffer += chunk
+        record, self._buffer = self._buffer[: FRAME.size], self._buffer[FRAME.size :]
+        return decode(record, self._channel), False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        with contextlib.suppress(OSError):
+            self._sock.shutdown(socket.SHUT_RDWR)
+        self._sock.close()
+
+
+class _LocalBus(can.BusABC):
+    """A bus inside the hub's process: sends go straight to the hub, receives come from a queue."""
+
+    def __init__(self, hub: CanHub) -> None:
+        self._hub = hub
+        self.queue: queue.SimpleQueue[can.Message] = queue.SimpleQueue()
+        self.channel_info = f"hdrig-tcp hub {hub.channel}"
+        super().__init__(hub.channel)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._hub.repeat(encode(msg), source=self)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        try:
+            return self.queue.get(timeout=timeout), False
+        except queue.Empty:
+            return None, False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        self._hub.detach(self)
+
+
+class CanHub:
+    """Repeats every frame to every other client: sockets on 127.0.0.1:`port` and buses in this process."""
+
+    def __init__(self, port: int = 0) -> None:
+        self._server = socket.create_server((LOOPBACK, port))
+        self.port: int = self._server.getsockname()[1]
+        self.channel = f"{LOOPBACK}:{self.port}"
+        self._lock = threading.Lock()
+        self._sockets: dict[socket.socket, threading.Lock] = {}
+        self._locals: list[_LocalBus] = []
+        self._closing = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._accept = threading.Thread(target=self._accept_loop, name="hdrig can hub", daemon=True)
+        self._accept.start()
+
+    def bus(self) -> can.BusABC:
+        """A python-can bus on this hub, in this process."""
+        local = _LocalBus(self)
+        with self._lock:
+            self._locals.append(local)
+        return local
+
+    def detach(self, local: _LocalBus) -> None:
+        with self._lock:
+            if local in self._locals:
+                self._locals.remove(local)
+
+    def repeat(self, record: bytes, source: object) -> None:
+        """Hand a frame to every client but its source (sockets in the caller's thread)."""
+        with self._lock:
+            sockets = [(s, lock) for s, lock in self._sockets.items() if s is not source]
+            locals_ = [b for b in self._locals if b is not source]
+        if locals_:
+            msg = decode(record, self.channel)
+            for local in locals_:
+                local.queue.put(msg)
+        for sock, lock in sockets:
+            try:
+                with lock:
+                    sock.sendall(record)
+            except OSError:
+                self._drop(sock)
+
+    def _accept_loop(self) -> None:
+        while not self._closing.is_set():
+            try:
+                sock, _ = self._server.accept()
+            except OSError:
+                return  # closed
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                self._sockets[sock] = threading.Lock()
+            reader = threading.Thread(
+                target=self._read_loop, args=(sock,), name="hdrig can hub client", daemon=True
+            )
+            self._threads.append(reader)
+            reader.start()
+
+    def _read_loop(self, sock: socket.socket) -> None:
+        buffer = b""
+        while True:
+            try:
+                chunk = sock.recv(64 * FRAME.size)
+            except OSError:
+                chunk = b""
+            if not chunk:
+                self._drop(sock)
+                return
+            buffer += chunk
+            while len(buffer) >= FRAME.size:
+                record, buffer = buffer[: FRAME.size], buffer[FRAME.size :]
+                self.repeat(record, source=sock)
+
+    def _drop(self, sock: socket.socket) -> None:
+        with self._lock:
+            self._sockets.pop(sock, None)
+        with contextlib.suppress(OSError):
+            sock.shutdown(socket.SHUT_RDWR)
+        sock.close()
+
+    def close(self) -> None:
+        """Stop accepting, close every client's stream, end the threads."""
+        self._closing.set()
+        with contextlib.suppress(OSError):
+            self._server.shutdown(socket.SHUT_RDWR)
+        self._server.close()
+        self._accept.join()
+        with self._lock:
+            sockets = list(self._sockets)
+        for sock in sockets:
+            self._drop(sock)
+        for thread in self._threads:
+            thread.join()
