@@ -219,7 +219,7 @@ class RunFileWriter:
     file beside the target and then converted one column and row group at a time. Nothing appears under
     `path` until `close()` (or a clean `with` exit); on an error the partial file is removed. With
     `as_run=False` the blocks are a selection (any columns, any rows) and only finite values and the
-    order of `t` are checked, as `write_columns` does.
+    order of `t` are checked, as `write_columns` does; `checked=False` checks nothing.
     """
 
     def __init__(
@@ -228,6 +228,7 @@ class RunFileWriter:
         names: Iterable[str],
         meta: dict[str, Any],
         as_run: bool = True,
+        checked: bool = True,
     ) -> None:
         self.path = Path(path)
         self.suffix = self.path.suffix.lower()
@@ -238,6 +239,7 @@ class RunFileWriter:
         self.names = ordered_columns(names)
         self.meta = dict(meta)
         self.check = StreamCheck(str(self.path), self.names, as_run)
+        self.checked = checked  # False: copy rows as recorded (the store's own compaction and sealing)
         if self.suffix == ".mat":
             for name in self.names:
                 if not _MATLAB_NAME.fullmatch(name) or name == _MAT_META_VARIABLE:
@@ -273,7 +275,10 @@ class RunFileWriter:
         if set(block) != set(self.names):
             raise ValueError(f"{self.path}: block has columns {sorted(block)}, the file has {self.names}")
         arrays = {c: np.asarray(block[c], dtype=np.float64) for c in self.names}
-        self.check.block(arrays)
+        if self.checked:
+            self.check.block(arrays)
+        else:
+            self.check.rows += len(arrays[self.names[0]])
         table = pa.table(arrays, schema=self._schema)
         if self._csv is not None:
             self._csv.write_table(table)
@@ -296,7 +301,8 @@ class RunFileWriter:
     def close(self) -> Path:
         """Finish the file and move it into place; returns its path."""
         try:
-            self.check.close()
+            if self.checked:
+                self.check.close()
             if self._csv is not None:
                 self._csv.close()
             else:

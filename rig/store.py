@@ -2,21 +2,33 @@
 
 Layout under the home folder:
 
-    catalog.sqlite                  table `runs`, one row per run (WAL mode: readers never block the writer)
+    catalog.sqlite                  table `runs`, one row per run (WAL mode: readers never block the writer);
+                                    table `checkpoints`, the estimates of each checkpoint of an endurance run
     runs/<id>/part-000000.parquet   while recording: one small file per flush
-    runs/<id>/data.parquet          once sealed: all parts in one file, with the run metadata
+    runs/<id>/merged-000000-000015.parquet   while recording: parts 0..15 compacted into one file
+    runs/<id>/data.parquet          once sealed: all rows in one file (row groups of 65,536 rows), with the
+                                    run metadata
     runs/<id>/artifacts/            derived results and plots
 
 Crash safety: a flush writes its rows as a new part file under a temporary name and renames it into place,
 so every part on disk is a complete Parquet file and a SIGKILL loses only the rows not yet flushed (at most
 `flush_interval_s` of data). A run whose writer process has died is found by its pid when runs are listed,
 marked `interrupted`, and sealed from the parts it left.
+
+Any length: while recording, every MERGE_FANIN parts are compacted (on a thread of their own, so flushes
+stay on time) into one merged file, and every MERGE_FANIN merged files of one size into one of the next, so
+a day at one flush a second leaves a few dozen files, not 86,400. A merged file is named by the parts it
+holds and renamed into place before its sources are deleted; a reader skips any file whose parts another
+file holds, so a crash between the two loses and doubles nothing. Sealing, reading and export stream one
+row group at a time: memory does not grow with the run, and a time window or some columns of a long run
+are read from the row groups that hold them only.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import secrets
@@ -37,12 +49,11 @@ from model.errors import UserInputError
 from model.run import Run, RunFormatError
 from rig.runfile import (
     READ_SUFFIXES,
+    RunFileWriter,
     json_text,
     ordered_columns,
-    read_parquet,
     read_run,
     write_parquet,
-    write_run,
 )
 from rig.status import RunStatus
 
@@ -51,7 +62,10 @@ STORED_STATUSES = (RunStatus.RUNNING, RunStatus.COMPLETE, RunStatus.ABORTED, Run
 EXPORT_FORMATS = ("csv", "parquet", "mat")
 DATA_FILE = "data.parquet"
 ARTIFACTS_DIR = "artifacts"
-_PART = re.compile(r"part-(\d+)\.parquet")
+_CHUNK = re.compile(r"(?:part-(\d+)|merged-(\d+)-(\d+))\.parquet")
+MERGE_FANIN = 16
+"""Parts per merged file, and merged files of one size per file of the next (16, 256, 4096 parts...)."""
+_MERGE_LEVELS = 5  # up to 16**5 parts: 12 days at one flush a second
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
@@ -73,6 +87,15 @@ CREATE TABLE IF NOT EXISTS runs (
     pid_started TEXT
 );
 CREATE INDEX IF NOT EXISTS runs_started ON runs (started);
+CREATE TABLE IF NOT EXISTS checkpoints (
+    run_id      TEXT NOT NULL REFERENCES runs (id),
+    idx         INTEGER NOT NULL,
+    unit        TEXT,
+    t_s         REAL NOT NULL,
+    estimates   TEXT NOT NULL,
+    PRIMARY KEY (run_id, idx)
+);
+CREATE INDEX IF NOT EXISTS checkpoints_unit ON checkpoints (unit);
 """.replace("STATUSES", ", ".join(f"'{s}'" for s in STORED_STATUSES))
 
 
@@ -125,9 +148,113 @@ def _process_alive(pid: int | None, host: str | None, pid_started: str | None) -
     return state != "Z" and (pid_started is None or started == pid_started)
 
 
-def _parts(run_dir: Path) -> list[Path]:
-    found = [(int(m.group(1)), p) for p in run_dir.iterdir() if (m := _PART.fullmatch(p.name))]
-    return [p for _, p in sorted(found)]
+class UnknownColumnError(UserInputError):
+    """A column asked for that the run does not have; the message lists the ones it has."""
+
+
+def _part_range(path: Path) -> tuple[int, int] | None:
+    """(first, last) part number a part or merged file holds; None for any other file."""
+    m = _CHUNK.fullmatch(path.name)
+    if m is None:
+        return None
+    if m.group(1) is not None:
+        return int(m.group(1)), int(m.group(1))
+    return int(m.group(2)), int(m.group(3))
+
+
+def _chunks(run_dir: Path) -> list[Path]:
+    """A recording run's part and merged files in row order, each row once: a file whose parts another
+    file also holds (a compaction's sources not yet deleted) is left out."""
+    found = sorted(
+        (span[0], -span[1], path) for path in run_dir.iterdir() if (span := _part_range(path)) is not None
+    )
+    kept: list[Path] = []
+    covered = -1
+    for _, neg_last, path in found:  # by first part, the widest file first
+        if -neg_last > covered:
+            kept.append(path)
+            covered = -neg_last
+    return kept
+
+
+def _copy_rows(sources: list[Path], target: Path, meta: dict[str, Any]) -> int:
+    """Stream the rows of Parquet files, in order, into one file of whole row groups; rows copied."""
+    names = ordered_columns(pq.ParquetFile(sources[0]).schema_arrow.names)
+    with RunFileWriter(target, names, meta, as_run=False, checked=False) as writer:
+        for source in sources:
+            parquet = pq.ParquetFile(source)
+            for group in range(parquet.num_row_groups):
+                table = parquet.read_row_group(group, columns=names)
+                writer.write({c: table.column(c).to_numpy() for c in names})
+    return writer.check.rows
+
+
+def _merges_due(part: int) -> list[tuple[int, int]]:
+    """The (first, last) part ranges to compact once part number `part` is on disk, smallest first."""
+    due = []
+    span = MERGE_FANIN
+    for _ in range(_MERGE_LEVELS):
+        if (part + 1) % span:
+            break
+        due.append((part + 1 - span, part))
+        span *= MERGE_FANIN
+    return due
+
+
+class _Compactor:
+    """Merges a recording run's parts on a thread of its own, so the flushes that write parts stay on time."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.run_dir = run_dir
+        self._lock = threading.Lock()
+        self._queue: list[tuple[int, int]] = []
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def part_written(self, part: int) -> None:
+        due = _merges_due(part)
+        if not due:
+            return
+        with self._lock:
+            self._queue += due
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._work, name=f"compact-{self.run_dir.name}")
+                self._thread.daemon = True
+                self._thread.start()
+
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                if not self._queue or self._error is not None:
+                    self._thread = None
+                    return
+                first, last = self._queue.pop(0)
+            try:
+                self._merge(first, last)
+            except BaseException as exc:  # raised again by join(): a failed merge is a bug or a full disk
+                with self._lock:
+                    self._error = exc
+
+    def _merge(self, first: int, last: int) -> None:
+        sources = []
+        for path in _chunks(self.run_dir):
+            span = _part_range(path)
+            if span is not None and first <= span[0] and span[1] <= last:
+                sources.append(path)
+        _copy_rows(sources, self.run_dir / f"merged-{first:06d}-{last:06d}.parquet", {})
+        for source in sources:  # only once the merged file is in place
+            source.unlink()
+
+    def join(self) -> None:
+        """Wait for the merges asked so far; raise the error of one that failed."""
+        while True:
+            with self._lock:
+                thread = self._thread
+            if thread is None:
+                break
+            thread.join()
+        if self._error is not None:
+            raise self._error
 
 
 class RunStore:
@@ -208,23 +335,24 @@ class RunStore:
         return RunWriter(self, run_id, columns, flush_interval_s, background)
 
     def _seal(self, run_id: str) -> tuple[int, str]:
-        """Merge a run's part files into `data.parquet`; return (samples, catalog path)."""
+        """Stream a run's part and merged files into `data.parquet`; return (samples, catalog path)."""
         run_dir = self.run_dir(run_id)
-        parts = _parts(run_dir)
-        if not parts:
-            data = run_dir / DATA_FILE
+        chunks = _chunks(run_dir)
+        data = run_dir / DATA_FILE
+        if not chunks:
             if not data.exists():
                 return 0, f"runs/{run_id}"  # nothing was ever flushed
             return pq.ParquetFile(data).metadata.num_rows, f"runs/{run_id}/{DATA_FILE}"
-        columns, _ = self._load(run_dir)
         with self._db() as db:
             row = self._row(db, run_id)
-        write_parquet(columns, self._run_meta(row), run_dir / DATA_FILE)
-        # Parts go only after the data file is in place; a reader meanwhile prefers the data file. A writer
-        # killed mid-flush also leaves its temporary part behind.
-        for part in [*parts, *run_dir.glob(".part-*.tmp")]:
-            part.unlink(missing_ok=True)
-        return len(columns["t"]), f"runs/{run_id}/{DATA_FILE}"
+        samples = _copy_rows(chunks, data, self._run_meta(row))
+        # Chunks go only after the data file is in place; a reader meanwhile prefers the data file. A writer
+        # killed mid-flush or mid-merge also leaves a temporary file behind.
+        for leftover in list(run_dir.iterdir()):
+            temporary = leftover.name.startswith(".") and leftover.suffix == ".tmp"
+            if temporary or _part_range(leftover) is not None:
+                leftover.unlink(missing_ok=True)
+        return samples, f"runs/{run_id}/{DATA_FILE}"
 
     # ---- catalog --------------------------------------------------------------------------------
 
@@ -250,8 +378,8 @@ class RunStore:
                 ).rowcount
             if not claimed:
                 continue
-            parts = _parts(self.run_dir(row["id"]))
-            last_write = parts[-1].stat().st_mtime if parts else None
+            chunks = _chunks(self.run_dir(row["id"]))
+            last_write = max((c.stat().st_mtime for c in chunks), default=None)
             samples, path = self._seal(row["id"])
             ended = _utc(datetime.fromtimestamp(last_write, UTC)) if last_write else row["started"]
             with self._db() as db:
@@ -312,21 +440,6 @@ class RunStore:
         return path
 
     @staticmethod
-    def _load(run_dir: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        data = run_dir / DATA_FILE
-        if not data.exists():
-            try:
-                blocks = [read_parquet(part)[0] for part in _parts(run_dir)]
-            except FileNotFoundError:
-                blocks = []  # sealed while we read: the data file now holds every part
-            else:
-                if not blocks:
-                    return {}, {}
-                names = ordered_columns(blocks[0])
-                return {c: np.concatenate([b[c] for b in blocks]) for c in names}, {}
-        return read_parquet(data)
-
-    @staticmethod
     def _run_meta(row: sqlite3.Row) -> dict[str, Any]:
         # The catalog is the authority on what, where and with which model; the rest is the writer's meta.
         meta: dict[str, Any] = json.loads(row["meta"])
@@ -339,20 +452,150 @@ class RunStore:
         )
         return meta
 
-    def read(self, run_id: str) -> Run:
-        """A run's samples so far (also while it is recording) and its metadata, validated."""
+    def _sources(self, run_id: str) -> list[Path]:
+        run_dir = self.run_dir(run_id)
+        data = run_dir / DATA_FILE
+        return [data] if data.exists() else _chunks(run_dir)
+
+    def columns(self, run_id: str) -> list[str]:
+        """The names of a run's columns, from a file's schema (no rows read); empty before the first flush."""
+        with self._db() as db:
+            self._row(db, run_id)
+        while True:
+            sources = self._sources(run_id)
+            if not sources:
+                return []
+            try:
+                return ordered_columns(pq.ParquetFile(sources[0]).schema_arrow.names)
+            except FileNotFoundError:
+                continue  # merged or sealed away since the listing: the new file is there
+
+    def _selected(self, run_id: str, columns: list[str] | None) -> list[str]:
+        have = self.columns(run_id)
+        if columns is None:
+            return have
+        unknown = [c for c in columns if c not in have]
+        if unknown:
+            raise UnknownColumnError(
+                f"run {run_id}: no column {unknown[0]!r} (it has {', '.join(have) or 'no samples yet'})"
+            )
+        return ["t", *[c for c in dict.fromkeys(columns) if c != "t"]]
+
+    def iter_blocks(
+        self,
+        run_id: str,
+        columns: list[str] | None = None,
+        t0: float | None = None,
+        t1: float | None = None,
+        rows: list[tuple[int, int]] | None = None,
+    ) -> Iterator[dict[str, np.ndarray]]:
+        """A run's samples, one row group at a time (also while it records): `columns` (every one when
+        None; `t` always, first), the samples with t0 ≤ t ≤ t1 [s], and with `rows` only those in these
+        half-open ranges of row numbers. Only the row groups that may hold such samples are read (their
+        `t` statistics), and of those only the columns asked for."""
+        names = self._selected(run_id, columns)
+        if not names:
+            return
+        lo = -math.inf if t0 is None else t0
+        hi = math.inf if t1 is None else t1
+        passed = 0  # rows of the run passed, to go on from there should the files change under us
+        while True:
+            try:
+                for row_end, block in self._scan(run_id, names, lo, hi, rows, passed):
+                    passed = row_end
+                    if len(block["t"]):
+                        yield block
+                return
+            except FileNotFoundError:
+                continue  # merged or sealed while read: list the files again, go on after row `passed`
+
+    def _scan(
+        self,
+        run_id: str,
+        names: list[str],
+        lo: float,
+        hi: float,
+        rows: list[tuple[int, int]] | None,
+        skip_to: int,
+    ) -> Iterator[tuple[int, dict[str, np.ndarray]]]:
+        """(row number after the group, its selected samples) for each row group past row `skip_to`."""
+        offset = 0
+        for source in self._sources(run_id):
+            parquet = pq.ParquetFile(source)
+            t_index = parquet.schema_arrow.get_field_index("t")
+            for group in range(parquet.num_row_groups):
+                meta = parquet.metadata.row_group(group)
+                start, offset = offset, offset + meta.num_rows
+                if offset <= skip_to or not _may_hold(meta.column(t_index).statistics, lo, hi):
+                    continue
+                if rows is not None and not any(a < offset and b > start for a, b in rows):
+                    continue
+                table = parquet.read_row_group(group, columns=names)
+                block = {c: np.asarray(table.column(c).to_numpy(), dtype=np.float64) for c in names}
+                keep = (block["t"] >= lo) & (block["t"] <= hi)
+                keep[: max(0, skip_to - start)] = False
+                if rows is not None:
+                    index = np.arange(start, offset)
+                    keep &= np.logical_or.reduce([(index >= a) & (index < b) for a, b in rows])
+                yield offset, {c: v[keep] for c, v in block.items()}
+
+    def read(
+        self,
+        run_id: str,
+        columns: list[str] | None = None,
+        t0: float | None = None,
+        t1: float | None = None,
+        segments: list[str] | None = None,
+    ) -> Run:
+        """A run's samples so far (also while it is recording) and its metadata.
+
+        With no selection: every sample, validated as a run. `columns` and `t0`/`t1` [s]: only those
+        columns (`t` always) and the samples with t0 ≤ t ≤ t1, read from the row groups that hold them; a
+        selection, not checked as a run (it may lack `theta_m` or have fewer than two rows; an unknown
+        column is an UnknownColumnError). `segments`: only the rows of the segments with these labels,
+        with the `segments` metadata renumbered to match (`segment_rows` works on it), validated as a
+        run: what an analysis of a long run reads instead of all of it.
+        """
         with self._db() as db:
             row = self._row(db, run_id)
-        columns, _ = self._load(self.run_dir(run_id))
-        if not columns:
+        meta = self._run_meta(row)
+        ranges = None
+        if segments is not None:
+            wanted = set(segments)
+            kept = [dict(seg) for seg in meta.get("segments", []) if seg["label"] in wanted]
+            ranges = [(int(seg["start"]), int(seg["start"]) + int(seg["cycles"])) for seg in kept]
+            start = 0
+            for seg in kept:
+                seg["start"] = start
+                start += int(seg["cycles"])
+            meta["segments"] = kept
+        names = self._selected(run_id, columns)
+        blocks = list(self.iter_blocks(run_id, columns, t0, t1, ranges))
+        data = {c: np.concatenate([b[c] for b in blocks]) if blocks else np.empty(0) for c in names}
+        if columns is not None or t0 is not None or t1 is not None:
+            return Run(data, meta)
+        if not blocks:
             raise RunFormatError(f"run {run_id}: no samples recorded yet (status {row['status']})")
         try:
-            return Run(columns, self._run_meta(row)).validate(where=f"run {run_id}")
+            return Run(data, meta).validate(where=f"run {run_id}")
         except RunFormatError as e:
             raise RunFormatError(f"{e} (status {row['status']}, {row['samples']} samples)") from e
 
-    def export(self, run_id: str, fmt: str, out_path: str | os.PathLike[str]) -> Path:
-        """Write a run as csv, parquet or mat; a folder as `out_path` gets `<id>.<fmt>` inside it."""
+    def export(
+        self,
+        run_id: str,
+        fmt: str,
+        out_path: str | os.PathLike[str],
+        columns: list[str] | None = None,
+        t0: float | None = None,
+        t1: float | None = None,
+    ) -> Path:
+        """Write a run as csv, parquet or mat; a folder as `out_path` gets `<id>.<fmt>` inside it.
+
+        Streamed a row group at a time, so a run of any length exports in bounded memory. With `columns`
+        (`t` always comes too) or a time window t0 ≤ t ≤ t1 [s], only that selection is written (a
+        download), not checked as a run.
+        """
         if fmt not in EXPORT_FORMATS:
             raise UserInputError(f"unknown export format {fmt!r}; use one of {', '.join(EXPORT_FORMATS)}")
         out = Path(out_path)
@@ -362,7 +605,23 @@ class RunStore:
             out = out.with_suffix(f".{fmt}")
         elif out.suffix.lower() != f".{fmt}":
             raise UserInputError(f"{out}: suffix {out.suffix!r} does not match the export format {fmt!r}")
-        return write_run(self.read(run_id), out)
+        with self._db() as db:
+            row = self._row(db, run_id)
+        selection = columns is not None or t0 is not None or t1 is not None
+        names = self._selected(run_id, columns)
+        if not names:
+            raise RunFormatError(f"run {run_id}: no samples recorded yet (status {row['status']})")
+        with RunFileWriter(out, names, self._run_meta(row), as_run=not selection) as writer:
+            for block in self.iter_blocks(run_id, columns, t0, t1):
+                writer.write(block)
+        return out
+
+
+def _may_hold(stats: Any, lo: float, hi: float) -> bool:
+    """Whether a row group whose `t` has these Parquet statistics may hold samples in [lo, hi]."""
+    if stats is None or not stats.has_min_max:
+        return True
+    return bool(stats.max >= lo and stats.min <= hi)
 
 
 class RunWriter:
@@ -393,6 +652,7 @@ class RunWriter:
         self._last_t: float | None = None
         self._last_flush_s = monotonic()
         self._next_part = 0
+        self._compactor = _Compactor(store.run_dir(run_id))
         self._buffer_lock = threading.Lock()  # the buffer, between appender and writer thread
         self._write_lock = threading.Lock()  # one flush at a time, so parts are numbered in order
         self._stop = threading.Event()
@@ -449,6 +709,7 @@ class RunWriter:
                 return
             columns = {c: np.concatenate([b[c] for b in pending]) for c in self.columns}
             write_parquet(columns, {}, self.run_dir / f"part-{self._next_part:06d}.parquet")
+            self._compactor.part_written(self._next_part)
             self._next_part += 1
             self.samples += len(columns["t"])
             with self.store._db() as db:
@@ -471,6 +732,7 @@ class RunWriter:
             self._stop.set()
             self._flusher.join()
         self.flush()
+        self._compactor.join()
         samples, path = self.store._seal(self.run_id)
         with self.store._db() as db:
             db.execute(
