@@ -1,0 +1,289 @@
+"""`compensation`: what a model's feed-forward buys in tracking, measured off and on with the same set-points.
+
+The step, sine and low-speed ramp of the tracking experiments (their default parameters) are each played
+without compensation, with the model's feed-forward (`model.compensator`: friction by the model's law
+with its position terms, inertia, the transmission's twist, the kinematic error), and with the model's
+friction deliberately off by each of `friction_errors` (−20 % and +20 %), one after the other, so the
+variants meet the same bench in the same state. Each is preceded by a hold at the start position whose
+last 50 ms give the zero of its angles, so an earlier variant's residual stick does not count against a
+later one.
+
+Per motion: the RMS of the load's tracking error θ_l − r·θ_sp (sine: after the first period; ramp: after
+`skip_s` in each direction, lag included) off and on and their ratio `improvement_<motion>`, the same
+ratio per friction error; for the ramp also the stick-slip amplitude (peak-to-peak of the detrended error,
+as `ramp` computes it) off and on, `improvement_stick_slip`. A variant that tracks worse than no
+compensation is named in the notes.
+
+It needs a model file (`--set model=FILE`): on a simulated rig, one fitted (`hdrig fit`) on a campaign
+recorded on that rig, not the plant's own parameters. It is not part of the campaign for that reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from model.compensator import Compensator
+from model.errors import UserInputError
+from model.feedforward import FF_LEVEL, FeedForwardTrack, min_measured_band_rad_s
+from model.params import HarmonicDriveModel, load_model
+from model.run import Run
+from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext, segment_rows
+from rig.experiments.plots import new_figure, save_figure
+from rig.experiments.tracking import (
+    ZERO_WINDOW_S,
+    Ramp,
+    RampParams,
+    Sine,
+    SineParams,
+    Step,
+    StepParams,
+    detrended,
+)
+from rig.interface import ControlMode, Segment
+
+MOTIONS = ("step", "sine", "ramp")
+MOTION_PARAMS = {"step": StepParams(), "sine": SineParams(), "ramp": RampParams()}
+MOTION_PROGRAMS = {"step": Step(), "sine": Sine(), "ramp": Ramp()}
+
+
+class CompensationParams(ExperimentParams):
+    model: str = Field(
+        description="model file (or preset name) whose feed-forward is tested; on a simulated rig, one fitted"
+        " on a campaign recorded on that rig"
+    )
+    friction_errors: list[float] = Field(
+        default=[-0.2, 0.2],
+        max_length=4,
+        description="errors put on the model's friction for extra compensated runs (−0.2: 20 % low) [–]",
+    )
+    measured_velocity: bool = Field(
+        default=False,
+        description="near zero planned speed, take the friction's direction from the measured speed"
+        " (in a band twice the one that would undamp the velocity loop)",
+    )
+    jump_s: float = Field(
+        default=0.016,
+        ge=0.002,
+        le=0.2,
+        description="time the motor takes to jump over a fold of the kinematic error [s]",
+    )
+    smooth_s: float = Field(
+        default=0.008,
+        ge=0.001,
+        le=0.2,
+        description="smoothing of the planned twist (kinks, friction flips) [s]",
+    )
+    hold_s: float = Field(default=0.5, ge=0.1, le=10, description="hold at the start before each variant [s]")
+
+    @field_validator("model")
+    @classmethod
+    def _loads(cls, name: str) -> str:
+        load_model(name)  # a missing or invalid file is told here, before the rig moves
+        return name
+
+    @field_validator("friction_errors")
+    @classmethod
+    def _plausible(cls, errors: list[float]) -> list[float]:
+        for error in errors:
+            if not -0.9 <= error <= 2.0 or error == 0.0:
+                raise ValueError(f"each must be a nonzero share between -0.9 and 2 (got {error})")
+        return errors
+
+
+@dataclass(frozen=True)
+class Variant:
+    tag: str  # off, on, friction_minus_20pct, ...
+    friction_scale: float | None  # None: no compensation
+
+
+def variants(params: CompensationParams) -> list[Variant]:
+    out = [Variant("off", None), Variant("on", 1.0)]
+    for error in params.friction_errors:
+        sign = "minus" if error < 0 else "plus"
+        out.append(Variant(f"friction_{sign}_{abs(error) * 100:.0f}pct", 1.0 + error))
+    return out
+
+
+def _hold_label(motion: str, variant: Variant) -> str:
+    return f"{motion}-{variant.tag}-hold"
+
+
+def _motion_labels(motion: str, variant: Variant, ctx: RigContext) -> list[str]:
+    return [f"{motion}-{variant.tag}-{seg.label}" for seg in _motion_segments(motion, ctx)]
+
+
+def _motion_segments(motion: str, ctx: RigContext) -> list[Segment]:
+    return MOTION_PROGRAMS[motion].program(MOTION_PARAMS[motion], ctx)
+
+
+def _track(
+    model: HarmonicDriveModel,
+    variant: Variant,
+    setpoints: np.ndarray,
+    params: CompensationParams,
+    ctx: RigContext,
+) -> FeedForwardTrack:
+    assert variant.friction_scale is not None
+    track = Compensator(model, variant.friction_scale).plan(
+        setpoints,
+        1.0 / ctx.rate_hz,
+        ctx.theta_m0,
+        ctx.config.control.max_velocity_rad_s,
+        jump_s=params.jump_s,
+        smooth_s=params.smooth_s,
+        label=variant.tag,
+    )
+    if not params.measured_velocity:
+        return track
+    level = float(np.max(track.rows[:, FF_LEVEL]))
+    band = 2.0 * min_measured_band_rad_s(level, model.motor.K_m, ctx.config.control.velocity_kp)
+    return FeedForwardTrack(track.rows, band, variant.tag)
+
+
+class Compensation(Experiment):
+    name = "compensation"
+    summary = "step, sine and slow ramp without and with the model's feed-forward (and its friction ±20 %)"
+    Params = CompensationParams
+    needs = frozenset({ControlMode.POSITION})
+
+    def program(self, params: CompensationParams, ctx: RigContext) -> list[Segment]:
+        model = load_model(params.model)
+        if abs(model.mechanics.r - ctx.gear_ratio) > 1e-9 * ctx.gear_ratio:
+            raise UserInputError(
+                f"run {self.name}: field 'model': gear ratio r = {model.mechanics.r}"
+                f" is not the rig's {ctx.gear_ratio}"
+            )
+        hold = np.full(ctx.cycles(params.hold_s), ctx.theta_m0)
+        program = []
+        for motion in MOTIONS:
+            pieces = _motion_segments(motion, ctx)
+            setpoints = np.concatenate([hold, *[seg.setpoint for seg in pieces]])
+            bounds = np.cumsum([0, hold.shape[0], *[seg.cycles for seg in pieces]])
+            for variant in variants(params):
+                track = (
+                    None if variant.friction_scale is None else _track(model, variant, setpoints, params, ctx)
+                )
+                labels = [_hold_label(motion, variant), *_motion_labels(motion, variant, ctx)]
+                for i, label in enumerate(labels):
+                    part = None if track is None else track.part(int(bounds[i]), int(bounds[i + 1]))
+                    program.append(
+                        Segment(ControlMode.POSITION, setpoints[bounds[i] : bounds[i + 1]], 0.0, label, part)
+                    )
+        return program
+
+    # --- analysis ----------------------------------------------------------------------------------------
+
+    @staticmethod
+    def _error(
+        run: Run, ctx: RigContext, motion: str, variant: Variant, label: str
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(time since the segment's start [s], θ_l − r·θ_sp [rad]), zeroed at the end of its hold."""
+        hold = segment_rows(run, _hold_label(motion, variant))
+        zero = slice(max(hold.start, hold.stop - ctx.cycles(ZERO_WINDOW_S)), hold.stop)
+        theta_l0 = float(np.mean(run["theta_l"][zero]))
+        rows = segment_rows(run, label)
+        t = run.t[rows]
+        error = (run["theta_l"][rows] - theta_l0) - ctx.gear_ratio * (run["setpoint"][rows] - ctx.theta_m0)
+        return t - t[0], error
+
+    def _figures(self, run: Run, ctx: RigContext, motion: str, variant: Variant) -> dict[str, float]:
+        labels = _motion_labels(motion, variant, ctx)
+        if motion == "sine":
+            t, e = self._error(run, ctx, motion, variant, labels[0])
+            sine = MOTION_PARAMS["sine"]
+            assert isinstance(sine, SineParams)
+            keep = t >= sine.skip_periods / sine.freq_hz
+            return {"rms": float(np.sqrt(np.mean(e[keep] ** 2)))}
+        if motion == "ramp":
+            ramp = MOTION_PARAMS["ramp"]
+            assert isinstance(ramp, RampParams)
+            rms, pp = [], []
+            for label in labels:
+                t, e = self._error(run, ctx, motion, variant, label)
+                keep = t >= ramp.skip_s
+                rms.append(np.mean(e[keep] ** 2))
+                pp.append(np.ptp(detrended(t[keep], e[keep])))
+            return {"rms": float(np.sqrt(np.mean(rms))), "stick_slip": float(np.mean(pp))}
+        errors = np.concatenate([self._error(run, ctx, motion, variant, label)[1] for label in labels])
+        return {"rms": float(np.sqrt(np.mean(errors**2)))}
+
+    def analyze(self, run: Run, params: CompensationParams, ctx: RigContext) -> Results:
+        metrics: dict[str, float | int | str] = {}
+        notes: list[str] = []
+        table: dict[str, list[float]] = {
+            "motion": [],
+            "friction_scale": [],
+            "rms_error_rad": [],
+            "stick_slip_pp_rad": [],
+        }
+        for index, motion in enumerate(MOTIONS):
+            figures = {v.tag: self._figures(run, ctx, motion, v) for v in variants(params)}
+            off = figures["off"]
+            for variant in variants(params):
+                got = figures[variant.tag]
+                metrics[f"rms_error_{motion}_{variant.tag}_rad"] = got["rms"]
+                table["motion"].append(index)
+                table["friction_scale"].append(
+                    0.0 if variant.friction_scale is None else variant.friction_scale
+                )
+                table["rms_error_rad"].append(got["rms"])
+                table["stick_slip_pp_rad"].append(got.get("stick_slip", float("nan")))
+                if variant.friction_scale is None:
+                    continue
+                suffix = "" if variant.tag == "on" else f"_{variant.tag}"
+                metrics[f"improvement_{motion}{suffix}"] = off["rms"] / got["rms"]
+                if got["rms"] > off["rms"]:
+                    notes.append(
+                        f"{motion}, {variant.tag}: RMS error {got['rms']:.4g} rad is worse than without"
+                        f" compensation ({off['rms']:.4g} rad) by {100 * (got['rms'] / off['rms'] - 1):.2g} %"
+                    )
+                if "stick_slip" in got:
+                    metrics[f"stick_slip_pp_{variant.tag}_rad"] = got["stick_slip"]
+                    metrics[f"improvement_stick_slip{suffix}"] = off["stick_slip"] / got["stick_slip"]
+                    if got["stick_slip"] > off["stick_slip"]:
+                        notes.append(
+                            f"ramp, {variant.tag}: stick-slip {got['stick_slip']:.3g} rad is worse than"
+                            f" without compensation ({off['stick_slip']:.3g} rad)"
+                        )
+            if "stick_slip" in off:
+                metrics["stick_slip_pp_off_rad"] = off["stick_slip"]
+        columns = {name: np.asarray(values) for name, values in table.items()}
+        return Results(metrics, {"compensation": columns}, notes)
+
+    def plot(
+        self, run: Run, results: Results, params: CompensationParams, ctx: RigContext, out_dir: Path
+    ) -> list[Path]:
+        paths = []
+        for motion in MOTIONS:
+            improvement = results.metrics.get(f"improvement_{motion}", float("nan"))
+            fig, ax = new_figure(
+                f"{motion}: load tracking error without and with the model's feed-forward"
+                f" (RMS {float(improvement):.3g}× lower)",
+                2,
+            )
+            for variant in variants(params):
+                labels = _motion_labels(motion, variant, ctx)
+                t_parts, e_parts, offset = [], [], 0.0
+                for label in labels:
+                    t, e = self._error(run, ctx, motion, variant, label)
+                    t_parts.append(t + offset)
+                    e_parts.append(e)
+                    offset += t[-1] + 1.0 / ctx.rate_hz
+                t_all, e_all = np.concatenate(t_parts), np.concatenate(e_parts)
+                main = variant.tag in ("off", "on")
+                target = ax if main else fig.axes[1]
+                rms = results.metrics[f"rms_error_{motion}_{variant.tag}_rad"]
+                target.plot(
+                    t_all, e_all, lw=0.8 if main else 0.6, label=f"{variant.tag} (RMS {float(rms):.2g} rad)"
+                )
+            for axis in fig.axes:
+                axis.set_ylabel("θ_l − r·θ_sp [rad]")
+                axis.legend(fontsize=8)
+            fig.axes[1].set_title("model's friction off by the set errors", fontsize=9)
+            fig.axes[1].set_xlabel(f"time since the {motion} started [s]")
+            paths.append(save_figure(fig, out_dir / f"compensation_{motion}.png"))
+        return paths
