@@ -564,7 +564,10 @@ class CanopenServo:
             if frame is not None:
                 frame.stop()
         self._guard, self._heartbeat = None, None
-        self.network.disconnect()
+        try:
+            self.network.disconnect()  # the bus is shut down before canopen re-raises a receive error
+        except can.CanError as exc:  # the bus died under a working drive: the cycle has already told
+            logger.warning("close: node %d: the bus had failed: %s", self.settings.node_id, exc)
         self.network, self.node = None, None
 
     def __enter__(self) -> CanopenServo:

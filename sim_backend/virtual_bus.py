@@ -28,12 +28,14 @@ from __future__ import annotations
 
 import contextlib
 import json
+import signal
 import struct
 import subprocess
 import sys
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from typing import IO, Final, Literal
 
 from pydantic import Field
@@ -53,7 +55,7 @@ from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
 from sim_backend.cia402_twin import LOAD_COB_ID, Cia402Twin
 from sim_backend.daq_twin import DaqTwin, PlantStateSource
-from sim_backend.twin_process import watchdog_grace_s
+from sim_backend.twin_process import serve_twins, watchdog_grace_s
 
 TWINS: Final = ("in-process", "process")
 """The rig file's `twins:`: in this process (threads), or in a child process on a loopback TCP bus."""
@@ -210,6 +212,14 @@ class VirtualCanRig(HardwareRig):
         if tau_ext_nm != self._load_sent and self.servo.network is not None:
             self.servo.network.send_message(LOAD_COB_ID, struct.pack("<d", tau_ext_nm))
             self._load_sent = tau_ext_nm
+
+    @classmethod
+    def serve_twins(cls, config: RigConfig, port: int, announce: Callable[[str], None]) -> None:
+        """`hdrig twin`: this rig's twins in this process until SIGINT/SIGTERM (`serve_twins`)."""
+        stop = threading.Event()
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        signal.signal(signal.SIGINT, lambda *_: stop.set())
+        serve_twins(config, None, port, announce, stop)
 
     def _bus_settings(self, config: RigConfig) -> CanopenSettings:
         """The `canopen:` section on a channel of this rig's own, paced by the rig, scaled by the model."""
