@@ -383,6 +383,20 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_twin(args: argparse.Namespace) -> int:
+    from rig.config import load_rig_config
+    from rig.interface import backend_class
+
+    config = load_rig_config(args.rig)
+    # The backend serves its own twins; rig knows no backend, so it asks the class named by the file.
+    serve = getattr(backend_class(config.backend), "serve_twins", None)
+    if serve is None:
+        raise UserInputError(f"rig {config.name!r}: backend {config.backend!r} has no twins to serve")
+    _say(f"hdrig: twins of rig {config.name} on 127.0.0.1; Ctrl-C stops them")
+    serve(config, args.port, lambda line: print(line, flush=True))
+    return 0
+
+
 SERVICE_MODULE = "api.app"
 
 
@@ -618,6 +632,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     serve.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
     serve.set_defaults(handler=cmd_serve)
+
+    twin = sub.add_parser(
+        "twin",
+        help="run a virtual-can rig's drive and DAQ twins standalone, for a CANopen master elsewhere",
+        description="Serve the twins of a virtual-can rig: the CiA 402 drive on a CAN bus over loopback"
+        " TCP (python-can interface hdrig-tcp) and the DAQ board on a pty; prints one JSON line saying"
+        " where (can, daq, node_id), then runs until Ctrl-C or SIGTERM.",
+    )
+    twin.add_argument("--rig", required=True, metavar="RIG", help="rig file, or a name in configs/rigs")
+    twin.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (default 0: any free)")
+    twin.set_defaults(handler=cmd_twin)
     return parser
 
 
