@@ -92,6 +92,12 @@ def main() -> None:
     parser.add_argument("--frequency", type=float, default=0.1, help="sine frequency [Hz] (0.1)")
     parser.add_argument("--daq-rate", type=float, help="DAQ sample rate [Hz] (default: the rig file's)")
     parser.add_argument("--daq-block", type=int, help="DAQ samples per frame (default: the rig file's)")
+    parser.add_argument(
+        "--twins",
+        choices=("in-process", "process"),
+        default="process",
+        help="the twins in this process, or in a child on the loopback TCP bus (default: process)",
+    )
     args = parser.parse_args()
 
     config = load_rig_config(RIG)
@@ -100,7 +106,8 @@ def main() -> None:
         daq["rate_hz"] = args.daq_rate
     if args.daq_block is not None:
         daq["samples_per_frame"] = args.daq_block
-    config = config.model_copy(update={"pace": "realtime", "daq": daq})
+    config = config.model_copy(update={"pace": "realtime", "daq": daq, "twins": args.twins})
+    in_process = args.twins == "in-process"
     period = 1.0 / config.sample_rate_hz
     cycles = round(args.duration * config.sample_rate_hz)
     t = np.arange(cycles) * period
@@ -113,22 +120,22 @@ def main() -> None:
     )
     print(
         f"{platform.python_implementation()} {platform.python_version()}, {cpu_model()},"
-        f" {os.cpu_count()} CPUs; twins in this process\n"
+        f" {os.cpu_count()} CPUs; twins {'in this process' if in_process else 'in a child process'}\n"
     )
 
     load_before = os.getloadavg()[0]
     blocks: list[dict[str, np.ndarray]] = []
     rig = VirtualCanRig(config)
     with rig, quiet_heap():  # this process owns the loop: its heap policy (rig.realtime)
-        assert rig.twin is not None and rig.daq is not None
+        assert rig.daq is not None
         daq_rate = rig.daq.command("RATE?")
         rig.cycle_log = CycleLog()
         rig.enable()
-        syncs_before = rig.twin.sync_count
+        syncs_before = rig.twin.sync_count if rig.twin is not None else 0
         busy0, cpu0, wall0 = cpu_busy(), time.process_time(), time.monotonic()
         result = rig.run_segment(Segment(ControlMode.VELOCITY, setpoint, 0.0, "sine"), blocks.append)
         busy1, cpu1, wall1 = cpu_busy(), time.process_time(), time.monotonic()
-        syncs = rig.twin.sync_count - syncs_before
+        syncs = rig.twin.sync_count - syncs_before if rig.twin is not None else None
         rig.disable()
         tally = rig.daq_tally
         log = rig.cycle_log.arrays()
@@ -139,10 +146,12 @@ def main() -> None:
     interval = np.diff(log["t_sync_s"])
     within = float(np.mean(cycle_time <= period))
     late = int(np.count_nonzero(interval > LATE_SYNC_PERIODS * period))
-    plant_steps = np.diff(rows)
-    broken = int(np.count_nonzero(np.abs(plant_steps - period) > 1e-9))
     missing_rows = cycles - len(rows)
-    extra_syncs = syncs - len(rows)
+    if in_process:  # rows carry the plant's own time, and the twin counts its SYNCs
+        broken = int(np.count_nonzero(np.abs(np.diff(rows) - period) > 1e-9))
+        extra_syncs = (syncs or 0) - len(rows)
+    else:  # rows carry SYNC host times; every row is one answered SYNC (an unanswered one ends the run)
+        broken, extra_syncs = 0, 0
     servo_lost = missing_rows + broken + abs(extra_syncs)
     seq_lost = sum(s.lost_samples for s in tally.streams)
     daq_lost = seq_lost + tally.index_gaps
