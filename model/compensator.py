@@ -103,7 +103,11 @@ def fold_window_rad(A: float, k_cycles: float, r: float) -> float:
 
 
 def _min_jerk_kernel(cycles: int) -> np.ndarray:
-    """Weights (sum 1) whose running sum is the minimum-jerk step 10s³ − 15s⁴ + 6s⁵ over `cycles`."""
+    """Weights (sum 1) whose running sum is the minimum-jerk step 10s³ − 15s⁴ + 6s⁵ over `cycles`.
+
+    An odd count, so that centred on a cycle it shifts nothing by half a cycle.
+    """
+    cycles |= 1
     if cycles < 2:
         return np.ones(1)
     s = np.linspace(0.0, 1.0, cycles + 1)
@@ -246,8 +250,8 @@ class Compensator:
         rows[:, FF_THETA] = theta_cmd
         rows[:, FF_OMEGA] = omega_m
         # A drive holds each cycle's torque until the next: aim it at the middle of that cycle.
-        alpha_held = 0.5 * (alpha_m + np.append(alpha_m[1:], alpha_m[-1]))
-        rows[:, FF_TORQUE] = m.J_m * alpha_held + m.r * t_s
+        torque = m.J_m * alpha_m + m.r * t_s
+        rows[:, FF_TORQUE] = 0.5 * (torque + np.append(torque[1:], torque[-1]))
         rows[:, FF_FRICTION] = friction
         rows[:, FF_LEVEL] = level
         return FeedForwardTrack(rows, measured_band_rad_s, label)
