@@ -24,9 +24,10 @@
 - `setpoint`, `tau_ext`: as commanded. A bench has no load actuator, so a segment asking for a load
   torque is refused (`load` is given only by the virtual backend, which sets the twin's load).
 
-Modes: current → CST, velocity → CSV, position → CSP; voltage is refused (CiA 402 has no voltage
-mode). A mode change between segments is disable → configure → enable (the drive refuses a remap
-while powered); the cycles it takes are not recorded, so `t` jumps over them.
+Modes: each program in the best mode the drive offers (`drivers.drive_modes`: CST, CSV, CSP first);
+voltage is refused (CiA 402 has no voltage mode). A mode change between segments is disable →
+configure → enable (the drive refuses a remap while powered); the cycles it takes are not recorded,
+so `t` jumps over them.
 
 The rig does not touch the garbage collector, whose full collections would stall the loop for
 50-80 ms: that is a policy of the process that owns the loop (`rig.realtime.quiet_heap`).
