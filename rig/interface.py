@@ -184,8 +184,9 @@ class Rig(ABC):
                     block, code = self._run_cycles(
                         segment.mode, segment.setpoint[done : done + n], tau[done : done + n]
                     )
-                else:
-                    block, code = self._run_cycles(
+                else:  # only backends with supports_feedforward take it (check_segment saw to that)
+                    with_track: Callable[..., tuple[Block, int]] = self._run_cycles
+                    block, code = with_track(
                         segment.mode,
                         segment.setpoint[done : done + n],
                         tau[done : done + n],
