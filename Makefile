@@ -47,6 +47,7 @@ bench: install
 	$(BIN)/python bench/bench_simulator.py
 	$(BIN)/python bench/bench_campaign.py
 	$(BIN)/python bench/bench_identify.py
+	$(BIN)/python bench/bench_compensation.py
 	$(BIN)/python bench/bench_daq.py
 	$(BIN)/python bench/bench_canopen.py
 	$(BIN)/python bench/bench_gaps.py
