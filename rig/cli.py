@@ -11,7 +11,9 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
@@ -214,12 +216,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         job = worker.submit(plan)
         try:
             _follow(worker, job, bar, landed)
-        except KeyboardInterrupt:
-            worker.quick_stop("Ctrl-C")  # the motor first; the run then ends `aborted` with its data
+        except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM/SIGHUP (StopSignal)
+            worker.quick_stop(str(stop) or "Ctrl-C")  # the motor first; the run then ends `aborted`, data kept
             job.done.wait()
             _follow(worker, job, bar, landed)
             _say(f"hdrig: interrupted; quick stop; run {job.runs[-1] if job.runs else '-'} kept")
-            return EXIT_INTERRUPTED
+            return _interrupted_status(stop)
     if job.exception is not None and not (runs and isinstance(job.exception, DeviceFaultError)):
         raise job.exception  # bad input found late, a fault before any run, or a bug (its traceback)
     if args.json:
@@ -255,6 +257,8 @@ def cmd_runs_list(args: argparse.Namespace) -> int:
         cells = "  ".join(f"{row[key]:<{width[key]}}" for key in header)
         samples = "samples" if run is None else str(run.samples)
         reason = "" if run is None or not run.reason else f"  {run.reason}"
+        if run is not None and run.analysis in ("interrupted", "failed"):
+            reason += f"  analysis: {run.analysis}"
         print(f"{cells}  {samples:>8}{reason}")
     _say(f"{len(runs)} run{'s' if len(runs) != 1 else ''} in {store.home}")
     return 0
@@ -279,6 +283,7 @@ def cmd_runs_show(args: argparse.Namespace) -> int:
         "ended": run.ended or "-",
         "samples": run.samples,
         "data": run.path,
+        "analysis": run.analysis or "-",
     }
     for key, value in fields.items():
         print(f"{key:<11} {value}")
@@ -288,6 +293,17 @@ def cmd_runs_show(args: argparse.Namespace) -> int:
     print("artifacts:" + ("" if run.artifacts else " none"))
     for path in run.artifacts:
         print(f"  {path}")
+    return 0
+
+
+def cmd_runs_analyze(args: argparse.Namespace) -> int:
+    from rig.store import RunStore
+
+    run = actions.analyze_run(RunStore(), args.run)
+    if args.json:
+        _print_json(run.as_json())
+    else:
+        print(_summary(run))
     return 0
 
 
@@ -420,6 +436,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         _say(f"hdrig: serving rig {config.name} on http://{host}:{args.port}/ (store {store.home})")
     # The service sits above the rig (api imports rig.core): found by name, as the backends are.
     service = importlib.import_module(SERVICE_MODULE)
+    if hasattr(signal, "SIGHUP") and threading.current_thread() is threading.main_thread():
+        # uvicorn shuts down gracefully on SIGTERM only (the lifespan quick-stops the rig): SIGHUP says the same.
+        signal.signal(signal.SIGHUP, lambda *_: signal.raise_signal(signal.SIGTERM))
     uvicorn.run(service.create_app(config, store), host=args.host, port=args.port, log_level="warning")
     return 0
 
@@ -549,6 +568,12 @@ def build_parser() -> argparse.ArgumentParser:
     runs_show.add_argument("run", metavar="RUN", help="run id (see hdrig runs list)")
     runs_show.add_argument("--json", action="store_true", help="one JSON object")
     runs_show.set_defaults(handler=cmd_runs_show)
+    analyze = runs_sub.add_parser(
+        "analyze", help="analyze a complete run again (tables, plots, metrics), e.g. after an interruption"
+    )
+    analyze.add_argument("run", metavar="RUN", help="run id (see hdrig runs list)")
+    analyze.add_argument("--json", action="store_true", help="the run's document as one JSON object")
+    analyze.set_defaults(handler=cmd_runs_analyze)
     export = runs_sub.add_parser("export", help="write a run as CSV (+ .json metadata), Parquet or MAT")
     export.add_argument("run", metavar="RUN", help="run id (see hdrig runs list)")
     export.add_argument("--format", required=True, choices=("csv", "parquet", "mat"), help="file format")
@@ -653,10 +678,33 @@ def _load_arg(text: str) -> str | float:
         return text
 
 
+class StopSignal(KeyboardInterrupt):
+    """SIGTERM or SIGHUP: the command ends as on Ctrl-C (a run quick-stops first, then its data are
+    sealed), with exit status 128 + the signal's number."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+def _raise_stop(signum: int, frame: object) -> None:
+    raise StopSignal(signum)
+
+
+def _interrupted_status(stop: KeyboardInterrupt) -> int:
+    return 128 + stop.signum if isinstance(stop, StopSignal) else EXIT_INTERRUPTED
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if hasattr(args, "load"):
         args.load = _load_arg(args.load)
+    # Only the main thread may set handlers (a program that calls main() on another thread keeps its own).
+    ours = threading.current_thread() is threading.main_thread()
+    previous = {number: signal.signal(number, _raise_stop) for number in STOP_SIGNALS} if ours else {}
     try:
         handler: Handler = args.handler
         return handler(args)
@@ -666,9 +714,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except DeviceFaultError as exc:
         print(f"hdrig: aborted: {exc}", file=sys.stderr)
         return EXIT_ABORTED
-    except KeyboardInterrupt:
-        print("hdrig: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as stop:
+        print(f"hdrig: interrupted{f' ({stop})' if isinstance(stop, StopSignal) else ''}", file=sys.stderr)
+        return _interrupted_status(stop)
+    finally:
+        for number, handler_before in previous.items():
+            signal.signal(number, handler_before)
 
 
 if __name__ == "__main__":

@@ -24,12 +24,12 @@ from pydantic import ValidationError
 from model.errors import UserInputError, describe_validation_error
 from rig.config import RigConfig
 from rig.experiments import experiment_named
-from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext
+from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext, context_from_run
 from rig.faults import DeviceFaultError
 from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, open_rig
 from rig.runfile import json_text
 from rig.status import RunStatus
-from rig.store import RunStore, RunWriter
+from rig.store import AnalysisState, RunStore, RunWriter
 
 logger = logging.getLogger(__name__)
 
@@ -199,16 +199,43 @@ def _play(
             )
         rig.disable()
         writer.finish(RunStatus.COMPLETE)
-    run = store.read(writer.run_id)
-    results = experiment.analyze(run, params, ctx)
-    artifacts = _save_results(store, writer.run_id, results)
-    plot_dir = store.add_artifact(writer.run_id, "plots")
-    plot_dir.mkdir(parents=True, exist_ok=True)
-    artifacts += experiment.plot(run, results, params, ctx, plot_dir)
-    store.set_metrics(writer.run_id, results.metrics)
+    return _analyze(store, writer.run_id, experiment, params, ctx)
+
+
+def _analyze(
+    store: RunStore, run_id: str, experiment: Experiment, params: ExperimentParams, ctx: RigContext
+) -> RunOutcome:
+    """Tables, plots and metrics of a complete run, its analysis state kept in the catalog throughout."""
+    store.set_analysis(run_id, AnalysisState.RUNNING)  # a process killed from here on leaves it `interrupted`
+    try:
+        run = store.read(run_id)
+        results = experiment.analyze(run, params, ctx)
+        artifacts = _save_results(store, run_id, results)
+        plot_dir = store.add_artifact(run_id, "plots")
+        plot_dir.mkdir(parents=True, exist_ok=True)
+        artifacts += experiment.plot(run, results, params, ctx, plot_dir)
+        store.set_metrics(run_id, results.metrics)
+    except Exception:
+        store.set_analysis(run_id, AnalysisState.FAILED)
+        raise
+    store.set_analysis(run_id, AnalysisState.DONE)
     return RunOutcome(
-        writer.run_id, experiment.name, RunStatus.COMPLETE, None, results.metrics, artifacts, writer.run_dir
+        run_id, experiment.name, RunStatus.COMPLETE, None, results.metrics, artifacts, store.run_dir(run_id)
     )
+
+
+def analyze_stored(store: RunStore, run_id: str) -> RunOutcome:
+    """Analyze a complete run in the store again, from its data and metadata (an analysis that was
+    interrupted or failed, or one made with older code)."""
+    entry = store.get(run_id)
+    if entry["status"] != RunStatus.COMPLETE:
+        raise UserInputError(
+            f"run {run_id} is {entry['reason'] or entry['status']}: only a complete run has an analysis"
+        )
+    experiment = experiment_named(entry["experiment"])
+    run = store.read(run_id)
+    params = make_params(experiment, dict(run.meta.get("params") or {}))
+    return _analyze(store, run_id, experiment, params, context_from_run(run, where=f"run {run_id}"))
 
 
 def _record(
@@ -223,6 +250,7 @@ def _record(
     """Settle, then play the program; (abort reason or None, the rig context the program ran in)."""
     config = rig.config
     theta_m0, aborted = _settle(rig, sink)
+    writer.flush_soon()  # each segment's rows on disk as it ends (a virtual-time run outpaces the interval)
     ctx = RigContext(config, rig.gear_ratio, rig.torque_constant_nm_per_a, theta_m0)
     if aborted is not None:
         return aborted, ctx
@@ -248,6 +276,7 @@ def _record(
         if hooks.on_segment is not None:
             hooks.on_segment(writer.run_id, seg)
         result = rig.run_segment(seg, sink, report)
+        writer.flush_soon()
         done += seg.cycles
         if result.aborted is not None:
             return result.aborted, ctx

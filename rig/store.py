@@ -12,8 +12,10 @@ Layout under the home folder:
 
 Crash safety: a flush writes its rows as a new part file under a temporary name and renames it into place,
 so every part on disk is a complete Parquet file and a SIGKILL loses only the rows not yet flushed (at most
-`flush_interval_s` of data). A run whose writer process has died is found by its pid when runs are listed,
-marked `interrupted`, and sealed from the parts it left.
+`flush_interval_s` of data; the first rows reach the disk within `FIRST_FLUSH_S`, and the runner asks for a
+flush at every segment's end, so a run recorded in virtual time, faster than any interval, is kept too).
+A run whose writer process has died is found by its pid when runs are listed, marked `interrupted`, and
+sealed from the parts it left; an analysis whose process died is listed `analysis: interrupted`.
 
 Any length: while recording, every MERGE_FANIN parts are compacted (on a thread of their own, so flushes
 stay on time) into one merged file, and every MERGE_FANIN merged files of one size into one of the next, so
@@ -37,6 +39,7 @@ import sqlite3
 import threading
 from collections.abc import Iterator
 from datetime import UTC, datetime
+from enum import StrEnum
 from pathlib import Path
 from time import monotonic
 from types import TracebackType
@@ -62,6 +65,16 @@ STORED_STATUSES = (RunStatus.RUNNING, RunStatus.COMPLETE, RunStatus.ABORTED, Run
 EXPORT_FORMATS = ("csv", "parquet", "mat")
 DATA_FILE = "data.parquet"
 ARTIFACTS_DIR = "artifacts"
+FIRST_FLUSH_S = 0.25  # the first rows of a run reach the disk this soon, however long the flush interval
+
+
+class AnalysisState(StrEnum):
+    """Where a run's analysis (tables, plots, metrics) stands, in the catalog's `analysis` column."""
+
+    RUNNING = "running"  # begun by the process in the run's `pid` column
+    DONE = "done"
+    INTERRUPTED = "interrupted"  # that process died first: `hdrig runs analyze RUN` runs it again
+    FAILED = "failed"  # it raised (the run's reason says why)
 _CHUNK = re.compile(r"(?:part-(\d+)|merged-(\d+)-(\d+))\.parquet")
 MERGE_FANIN = 16
 """Parts per merged file, and merged files of one size per file of the next (16, 256, 4096 parts...)."""
@@ -84,7 +97,8 @@ CREATE TABLE IF NOT EXISTS runs (
     meta        TEXT NOT NULL DEFAULT '{}',
     pid         INTEGER,
     host        TEXT,
-    pid_started TEXT
+    pid_started TEXT,
+    analysis    TEXT
 );
 CREATE INDEX IF NOT EXISTS runs_started ON runs (started);
 CREATE TABLE IF NOT EXISTS checkpoints (
@@ -267,6 +281,8 @@ class RunStore:
         with self._db() as db:
             db.execute("PRAGMA journal_mode=WAL")
             db.executescript(_SCHEMA)
+            if "analysis" not in {row["name"] for row in db.execute("PRAGMA table_info(runs)")}:
+                db.execute("ALTER TABLE runs ADD COLUMN analysis TEXT")  # a catalog from before the column
 
     @contextlib.contextmanager
     def _db(self) -> Iterator[sqlite3.Connection]:
@@ -363,9 +379,19 @@ class RunStore:
         return row
 
     def _reconcile(self, rows: list[sqlite3.Row]) -> bool:
-        """Mark `running` runs whose writer process has died as `interrupted`; True if any changed."""
+        """Mark `running` runs, and running analyses, whose process has died as `interrupted`; True if any
+        changed."""
         changed = False
         for row in rows:
+            if row["analysis"] == AnalysisState.RUNNING and not _process_alive(
+                row["pid"], row["host"], row["pid_started"]
+            ):
+                with self._db() as db:
+                    db.execute(
+                        "UPDATE runs SET analysis = ? WHERE id = ? AND analysis = ?",
+                        (AnalysisState.INTERRUPTED.value, row["id"], AnalysisState.RUNNING.value),
+                    )
+                changed = True
             if row["status"] != RunStatus.RUNNING or _process_alive(
                 row["pid"], row["host"], row["pid_started"]
             ):
@@ -421,6 +447,20 @@ class RunStore:
         with self._db() as db:
             self._row(db, run_id)
             db.execute("UPDATE runs SET metrics = ? WHERE id = ?", (json_text(metrics), run_id))
+
+    def set_analysis(self, run_id: str, state: AnalysisState) -> None:
+        """Record where a run's analysis stands; `running` names this process as the one doing it, so
+        a listing finds it `interrupted` should this process die first."""
+        with self._db() as db:
+            self._row(db, run_id)
+            if state == AnalysisState.RUNNING:
+                stat = _process_start(os.getpid())
+                db.execute(
+                    "UPDATE runs SET analysis = ?, pid = ?, host = ?, pid_started = ? WHERE id = ?",
+                    (state.value, os.getpid(), socket.gethostname(), stat[1] if stat else None, run_id),
+                )
+            else:
+                db.execute("UPDATE runs SET analysis = ? WHERE id = ?", (AnalysisState(state).value, run_id))
 
     # ---- data -----------------------------------------------------------------------------------
 
@@ -605,6 +645,7 @@ class RunStore:
             out = out.with_suffix(f".{fmt}")
         elif out.suffix.lower() != f".{fmt}":
             raise UserInputError(f"{out}: suffix {out.suffix!r} does not match the export format {fmt!r}")
+        self._refuse_own_files(out)
         with self._db() as db:
             row = self._row(db, run_id)
         selection = columns is not None or t0 is not None or t1 is not None
@@ -615,6 +656,14 @@ class RunStore:
             for block in self.iter_blocks(run_id, columns, t0, t1):
                 writer.write(block)
         return out
+
+    def _refuse_own_files(self, path: Path) -> None:
+        """An export never lands in the store's own files: a run's folder or the catalog (it would replace
+        a run's samples behind the catalog's back)."""
+        target, home = path.resolve(), self.home.resolve()  # resolved: `..` and links do not get round it
+        catalog = target.parent == home and target.name.startswith(self.catalog_path.name)
+        if target.is_relative_to(home / "runs") or catalog:
+            raise UserInputError(f"{path}: inside the run store's own files ({home}); export outside them")
 
 
 def _may_hold(stats: Any, lo: float, hi: float) -> bool:
@@ -656,6 +705,7 @@ class RunWriter:
         self._buffer_lock = threading.Lock()  # the buffer, between appender and writer thread
         self._write_lock = threading.Lock()  # one flush at a time, so parts are numbered in order
         self._stop = threading.Event()
+        self._wake = threading.Event()  # the writer thread flushes now (a segment's end, the finish)
         self._flusher: threading.Thread | None = None
         if background:
             self._flusher = threading.Thread(
@@ -663,9 +713,22 @@ class RunWriter:
             )
             self._flusher.start()
 
+    def _interval_s(self) -> float:
+        return FIRST_FLUSH_S if self._next_part == 0 else self.flush_interval_s
+
     def _flush_loop(self) -> None:
-        while not self._stop.wait(self.flush_interval_s):
+        while not self._stop.is_set():
+            self._wake.wait(self._interval_s())
+            self._wake.clear()
             self.flush()
+
+    def flush_soon(self) -> None:
+        """Put the rows appended so far on disk without waiting for the interval: at once without a
+        writer thread, else the writer thread does it now (the caller does not wait on the disk)."""
+        if self._flusher is None:
+            self.flush()
+        else:
+            self._wake.set()
 
     @property
     def run_dir(self) -> Path:
@@ -696,7 +759,7 @@ class RunWriter:
             with self._buffer_lock:
                 self._buffer.append(arrays)
             self.appended += int(t.size)
-        if self._flusher is None and monotonic() - self._last_flush_s >= self.flush_interval_s:
+        if self._flusher is None and monotonic() - self._last_flush_s >= self._interval_s():
             self.flush()
 
     def flush(self) -> None:
@@ -730,6 +793,7 @@ class RunWriter:
             )
         if self._flusher is not None:
             self._stop.set()
+            self._wake.set()
             self._flusher.join()
         self.flush()
         self._compactor.join()

@@ -8,13 +8,22 @@ or on the virtual-can rig, whose raw CAN log shows what the drive was told last.
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
+import can
 import numpy as np
 import pytest
+import yaml
 
-from rig.config import RigConfig, load_rig_config
+from drivers.hardware_rig import RAW_CAN_LOG
+from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.interface import Block
 from rig.runner import RunHooks, run_experiment
 from rig.status import RunStatus
@@ -22,6 +31,11 @@ from rig.store import RunStore
 from sim_backend.inprocess import SimRig
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+NODE = 1  # configs/rigs/virtual-can.yaml
+RPDO, NMT = 0x200 + NODE, 0x000  # RPDO 1 carries the controlword first (drivers.canopen_config.rpdo_layout)
+ENABLE_OPERATION = 0x000F  # CiA 402 controlword bits 0-3 all set: the only command under which the drive moves
+START_TIMEOUT_S = 60.0  # a loaded 2-core machine may take this long to start a run; never reached when well
+LOST_BOUND_S = 1.0  # the store's promise: a killed run loses at most a flush interval of samples
 
 
 def sim_config(pace: str = "virtual") -> RigConfig:
@@ -76,3 +90,177 @@ def test_an_exception_mid_run_quick_stops_before_the_data_are_sealed(
     assert entry["reason"] == "aborted: a bug in a block consumer"
     assert entry["samples"] == sum(blocks)  # every block handed out was kept
     assert np.all(np.diff(store.read(entry["id"]).t) > 0)
+
+
+# ---- the process, as a user runs it: signals -------------------------------------------------------
+
+
+def realtime_rig_file(tmp_path: Path, name: str) -> Path:
+    """A copy of configs/rigs/NAME.yaml paced to the wall clock (a speed sweep then lasts ~18 s)."""
+    config = yaml.safe_load((RIG_DIR / f"{name}.yaml").read_text())
+    config["pace"] = "realtime"
+    path = tmp_path / f"{name}-realtime.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def hdrig(home: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "HDRIG_HOME": str(home)}
+    return subprocess.run(
+        [sys.executable, "-m", "rig", *args], capture_output=True, text=True, cwd=REPO_ROOT, env=env, timeout=300
+    )
+
+
+def start_run(home: Path, rig_file: Path, *options: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "rig", "run", "speed-sweep", "--rig", str(rig_file), "-q", *options],
+        env={**os.environ, "HDRIG_HOME": str(home)},
+        cwd=REPO_ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+
+
+def wait_until_recording(child: subprocess.Popen[str], home: Path, samples: int = 1000) -> int:
+    """Wait until `samples` of the run are on disk; the samples flushed by then."""
+    deadline = time.monotonic() + START_TIMEOUT_S
+    flushed = 0
+    while flushed < samples and time.monotonic() < deadline and child.poll() is None:
+        time.sleep(0.05)
+        if (home / "catalog.sqlite").exists():
+            flushed = max((r["samples"] for r in RunStore(home).list_runs()), default=0)
+    assert child.poll() is None, f"the run ended before it could be hit: {child.communicate()[1]}"
+    assert flushed >= samples, f"{samples} samples did not reach the store within {START_TIMEOUT_S} s"
+    return flushed
+
+
+def stopped_in_the_can_log(run_dir: Path) -> bool:
+    """Whether the last command the drive was sent says stop: the last RPDO's controlword is not
+    `enable operation` (quick stop 0x0002, shutdown 0x0006, disable 0x0000), or an NMT STOP followed it."""
+    last_controlword, nmt_stop_after = None, False
+    for message in can.LogReader(run_dir / RAW_CAN_LOG):
+        if message.arbitration_id == RPDO and len(message.data) >= 2:
+            last_controlword = int.from_bytes(message.data[:2], "little")
+            nmt_stop_after = False
+        elif message.arbitration_id == NMT and message.data[:1] == b"\x02":
+            nmt_stop_after = True
+    assert last_controlword is not None, "no RPDO in the raw CAN log"
+    return nmt_stop_after or last_controlword & ENABLE_OPERATION != ENABLE_OPERATION
+
+
+def no_traceback(stderr: str) -> None:
+    assert "Traceback" not in stderr, stderr
+
+
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGTERM, 143), (signal.SIGHUP, 129)])
+def test_sigterm_and_sighup_quick_stop_the_drive_then_keep_the_run_aborted(
+    tmp_path: Path, sig: signal.Signals, status: int
+) -> None:
+    home = tmp_path / "home"
+    child = start_run(home, realtime_rig_file(tmp_path, "virtual-can"))
+    try:
+        flushed = wait_until_recording(child, home)
+        child.send_signal(sig)
+        _, stderr = child.communicate(timeout=60)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+
+    no_traceback(stderr)
+    assert child.returncode == status, stderr
+    (entry,) = RunStore(home).list_runs()
+    assert (entry["status"], entry["reason"]) == ("aborted", "aborted: quick stop requested")
+    assert entry["samples"] >= flushed and len(RunStore(home).read(entry["id"])) == entry["samples"]
+    assert stopped_in_the_can_log(Path(entry["path"]).parent)
+
+
+# ---- the store: nothing lost, nothing overwritten, nothing hidden -----------------------------------
+
+
+def test_the_first_rows_reach_the_disk_long_before_the_flush_interval(tmp_path: Path) -> None:
+    store = RunStore(tmp_path / "home")
+    writer = store.open_run("pulse", "sim", None, None, ["t", "u"], {}, flush_interval_s=60.0, background=True)
+    writer.append({"t": np.arange(10) / 1000.0, "u": np.zeros(10)})
+    # FIRST_FLUSH_S is 0.25 s; 10 s is a deadline for a loaded machine, still far below the 60 s interval.
+    deadline = time.monotonic() + 10.0
+    while store.get(writer.run_id)["samples"] < 10 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert store.get(writer.run_id)["samples"] == 10
+    writer.finish()
+
+
+class _SlowFlushStore(RunStore):
+    """A store whose runs flush only every minute: what reaches the disk sooner came by a segment's end."""
+
+    def open_run(self, *args: Any, **kwargs: Any) -> Any:
+        return super().open_run(*args, **{**kwargs, "flush_interval_s": 60.0})
+
+
+def test_each_segment_is_on_disk_once_it_ends_even_in_virtual_time(tmp_path: Path) -> None:
+    store = _SlowFlushStore(tmp_path / "home")
+    rig = SimRig(sim_config())
+    ends: list[tuple[int, int]] = []  # (rows recorded before a segment began, rows on disk by then)
+
+    def on_segment(run_id: str, segment: Any) -> None:
+        recorded = sum(blocks)
+        deadline = time.monotonic() + 10.0  # a deadline for a loaded machine; the flush is asked at once
+        while store.get(run_id)["samples"] < recorded and time.monotonic() < deadline:
+            time.sleep(0.01)
+        ends.append((recorded, store.get(run_id)["samples"]))
+
+    blocks: list[int] = []
+    hooks = RunHooks(on_block=lambda run_id, block: blocks.append(len(block["t"])), on_segment=on_segment)
+    run_experiment("speed-sweep", rig.config, {"hold_s": 0.3}, store=store, rig=rig, hooks=hooks)
+    assert len(ends) > 2
+    assert all(on_disk == recorded for recorded, on_disk in ends), ends
+
+
+@pytest.fixture(scope="module")
+def pulse_home(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """A store with one complete pulse run on `sim` (virtual time: a second or two)."""
+    home = tmp_path_factory.mktemp("home")
+    result = hdrig(home, "run", "pulse", "--rig", "sim", "-q", "--json")
+    assert result.returncode == 0, result.stderr
+    return home, str(json.loads(result.stdout)["id"])
+
+
+def test_export_into_a_run_folder_of_the_store_is_refused(pulse_home: tuple[Path, str]) -> None:
+    home, run_id = pulse_home
+    data = home / "runs" / run_id / "data.parquet"
+    before = data.read_bytes()
+    for out in (data, home / "runs" / run_id / ".." / run_id / "copy.parquet", home / "runs"):
+        result = hdrig(home, "runs", "export", run_id, "--format", "parquet", "--out", str(out))
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.count("\n") == 1 and "inside the run store's own files" in result.stderr
+    assert data.read_bytes() == before
+
+
+ANALYSIS_KILLED = """
+import os, signal, sys
+from rig.experiments.pulse import Pulse
+def killed(*args, **kwargs):
+    os.kill(os.getpid(), signal.SIGKILL)  # as a power cut or the OOM killer would, mid-analysis
+Pulse.analyze = killed
+from rig.cli import main
+sys.exit(main(["run", "pulse", "--rig", "sim", "-q"]))
+"""
+
+
+def test_a_killed_analysis_is_listed_interrupted_and_runs_analyze_makes_it(tmp_path: Path) -> None:
+    home = tmp_path / "home"
+    env = {**os.environ, "HDRIG_HOME": str(home), "PYTHONPATH": str(REPO_ROOT)}
+    child = subprocess.run([sys.executable, "-c", ANALYSIS_KILLED], env=env, cwd=REPO_ROOT, timeout=300)
+    assert child.returncode == -signal.SIGKILL
+
+    listed = hdrig(home, "runs", "list")
+    assert listed.returncode == 0 and "analysis: interrupted" in listed.stdout, listed.stdout
+    (entry,) = json.loads(hdrig(home, "runs", "list", "--json").stdout)
+    assert (entry["status"], entry["analysis"], entry["metrics"]) == ("complete", "interrupted", {})
+
+    again = hdrig(home, "runs", "analyze", entry["id"], "--json")
+    assert again.returncode == 0, again.stderr
+    document = json.loads(again.stdout)
+    assert document["analysis"] == "done" and document["metrics"] and document["artifacts"]
+    assert json.loads(hdrig(home, "runs", "show", entry["id"], "--json").stdout)["analysis"] == "done"

@@ -20,7 +20,7 @@ import scipy.io
 import rig.store as store_module
 from model.run import RunFormatError
 from rig.runfile import read_run
-from rig.store import RunStore, UnknownRunError, default_home
+from rig.store import FIRST_FLUSH_S, RunStore, UnknownRunError, default_home
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 COLUMNS = ["t", "u", "theta_m"]
@@ -202,10 +202,16 @@ def test_rows_stay_buffered_until_the_flush_interval_has_passed(
     monkeypatch.setattr(store_module, "monotonic", clock)
     writer = open_run(store)
     writer.append(block(0, 10))
-    clock.now_s += 0.9
+    clock.now_s += 0.2
     writer.append(block(10, 10))
     assert store.get(writer.run_id)["samples"] == 0
-    assert not list(writer.run_dir.glob("part-*"))
+    clock.now_s += FIRST_FLUSH_S - 0.2  # the first rows go to disk early: a crash then loses little
+    writer.append(block(20, 10))
+    assert store.get(writer.run_id)["samples"] == 30
+    clock.now_s += 0.9  # after the first flush, the interval (1 s)
+    writer.append(block(30, 10))
+    assert store.get(writer.run_id)["samples"] == 30
+    assert [p.name for p in writer.run_dir.glob("part-*")] == ["part-000000.parquet"]
 
 
 def test_append_flushes_once_the_interval_has_passed(

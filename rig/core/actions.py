@@ -41,7 +41,7 @@ from rig.experiments import CAMPAIGN, CAMPAIGN_ORDER, EXPERIMENTS, experiment_na
 from rig.faults import DeviceFaultError
 from rig.interface import ModeRefusedError, Rig
 from rig.runfile import json_text
-from rig.runner import Progress, RunHooks, RunOutcome, make_params, run_experiment
+from rig.runner import Progress, RunHooks, RunOutcome, analyze_stored, make_params, run_experiment
 from rig.status import RunStatus
 from rig.store import ARTIFACTS_DIR, RunStore, load_runs, new_run_id
 
@@ -238,6 +238,7 @@ def _document(store: RunStore, entry: dict[str, Any], with_artifacts: bool) -> R
         path=entry["path"],
         run_dir=str(run_dir),
         artifacts=_artifacts(run_dir) if with_artifacts else [],
+        analysis=entry.get("analysis"),
     )
 
 
@@ -252,6 +253,13 @@ def run_document(store: RunStore, run_id: str, outcome: RunOutcome | None = None
     if outcome is not None and outcome.reason and not document.reason:
         document.reason = outcome.reason
     return document
+
+
+def analyze_run(store: RunStore, run_id: str) -> RunDocument:
+    """Analyze a complete run again (`hdrig runs analyze`): tables, plots and metrics from its data, e.g.
+    after an analysis was interrupted; the run's document with them."""
+    outcome = analyze_stored(store, run_id)
+    return run_document(store, outcome.run_id, outcome)
 
 
 def export_run(store: RunStore, run_id: str, fmt: str, out: str | Path) -> Path:

@@ -71,6 +71,11 @@ class RunDocument(Document):
     run_dir: str | None = Field(default=None, description="the run's folder (data, artifacts/)")
     artifacts: list[str] = Field(default_factory=list, description="tables, results.json and plots")
     owner: str | None = Field(default=None, description="who started it (the API key's name; None: CLI)")
+    analysis: str | None = Field(
+        default=None,
+        description="its analysis: running, done, interrupted (the process died: `hdrig runs analyze RUN`"
+        " runs it again) or failed; None for a run that was not analyzed (aborted, or older)",
+    )
 
 
 class FitParameter(Document):
