@@ -27,6 +27,7 @@ from model.feedforward import FeedForwardTrack
 from model.params import HarmonicDriveModel
 from rig.config import RigConfig
 from rig.faults import DeviceFaultError
+from rig.rig_lock import RigLock
 from rig.safety import ABORT_REASONS, NO_ABORT
 
 
@@ -116,6 +117,7 @@ class Rig(ABC):
         self._last_abort: str | None = None
         self._stop_requested = threading.Event()
         self.t_s = 0.0  # rig clock: time of the next sample [s]
+        self._lock: RigLock | None = None  # a hardware rig's, taken by open_rig
 
     # --- the promises every backend keeps ---------------------------------------------------------
 
@@ -145,6 +147,8 @@ class Rig(ABC):
         if self._enabled:
             self.quick_stop()
         self._close()
+        if self._lock is not None:
+            self._lock.release()
 
     def __enter__(self) -> Rig:
         return self
@@ -368,7 +372,16 @@ def open_rig(config: RigConfig) -> Rig:
         cls = backend_class(config.backend)
     except RigError as error:
         raise RigError(f"rig {config.name!r}: {error}") from None
-    return cls(config)
+    # A hardware bench takes one process at a time (a second would command the same drive).
+    lock = RigLock.take(config.name) if cls.source == "hardware" else None
+    try:
+        rig = cls(config)
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        raise
+    rig._lock = lock
+    return rig
 
 
 def open_simulated_rig(config: RigConfig, model: HarmonicDriveModel, theta_m: float = 0.0) -> Rig:

@@ -264,3 +264,63 @@ def test_a_killed_analysis_is_listed_interrupted_and_runs_analyze_makes_it(tmp_p
     document = json.loads(again.stdout)
     assert document["analysis"] == "done" and document["metrics"] and document["artifacts"]
     assert json.loads(hdrig(home, "runs", "show", entry["id"], "--json").stdout)["analysis"] == "done"
+
+
+# ---- one process per hardware rig --------------------------------------------------------------------
+
+BENCH = """
+import sys, time
+import numpy as np
+from rig import interface
+from rig.config import load_rig_config
+
+class Bench(interface.Rig):  # a hardware backend (source "hardware") that touches no device
+    def _run_cycles(self, mode, setpoint, tau_ext):
+        return {}, 0
+    def _enable(self): pass
+    def _disable(self): pass
+    def _quick_stop(self): pass
+    gear_ratio = 0.01
+    torque_constant_nm_per_a = 0.03
+
+interface.backend_class = lambda name: Bench
+config = load_rig_config("sim").model_copy(update={"name": sys.argv[1], "backend": "bench"})
+rig = interface.open_rig(config)
+print("open", flush=True)
+if sys.argv[2] == "hold":
+    time.sleep(600)
+rig.close()
+print("closed", flush=True)
+"""
+
+
+def test_a_second_process_on_a_hardware_rig_is_told_which_pid_has_it(tmp_path: Path) -> None:
+    name = f"bench-{os.getpid()}-{time.monotonic_ns()}"  # a lock of this test's own
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
+    holder = subprocess.Popen(
+        [sys.executable, "-c", BENCH, name, "hold"], env=env, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "open"
+        second = subprocess.run(
+            [sys.executable, "-c", BENCH, name, "once"], env=env, capture_output=True, text=True, timeout=120
+        )
+        assert second.returncode != 0
+        assert f"rig '{name}' in use by pid {holder.pid}" in second.stderr
+    finally:
+        holder.kill()
+        holder.wait()
+    # The kernel dropped the lock with its holder (killed, not closed): the rig opens again.
+    again = subprocess.run(
+        [sys.executable, "-c", BENCH, name, "once"], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert again.stdout.split() == ["open", "closed"], again.stderr
+
+
+def test_the_simulated_rig_takes_no_lock() -> None:
+    from rig.interface import open_rig
+
+    first, second = open_rig(sim_config()), open_rig(sim_config())  # one process, two sim rigs: both open
+    first.close()
+    second.close()
+    assert first._lock is None and second._lock is None
