@@ -32,18 +32,19 @@ KE_A, KE_K, KE_PHI = 47, 48, 49
 NS_K1, NS_K2, NS_K3, NS_T1, NS_T2, NS_D1, NS_D2 = 50, 51, 52, 53, 54, 55, 56
 ST_F, ST_OMEGA, DIR_F, LOAD_C, HYS_T, HYS_DELTA, TH_D, TH_TAU = 57, 58, 59, 60, 61, 62, 63, 64
 OMEGA_STICK_M, OMEGA_STICK_L = 65, 66
-N_PARAMS = 67
+WEAR_K = 67
+N_PARAMS = 68
 
 # --- integer flags ----------------------------------------------------------------------------
 FL_MOTOR_LAW, FL_LOAD_LAW, FL_RIGID, FL_NONLINEAR, FL_HYSTERESIS, FL_KINEMATIC, FL_HARMONICS = range(7)
-FL_STRIBECK, FL_THERMAL = 7, 8
-N_FLAGS = 9
+FL_STRIBECK, FL_THERMAL, FL_WEAR = 7, 8, 9
+N_FLAGS = 10
 
 LAW_NONE, LAW_ARTICLE, LAW_COULOMB_VISCOUS, LAW_STRIBECK, LAW_LUGRE, LAW_DAHL = range(6)
 
 # --- state vector -----------------------------------------------------------------------------
-X_THETA_M, X_OMEGA_M, X_THETA_L, X_OMEGA_L, X_Z_M, X_Z_L, X_Z_H, X_TIME, X_TS = range(9)
-N_STATE = 9
+X_THETA_M, X_OMEGA_M, X_THETA_L, X_OMEGA_L, X_Z_M, X_Z_L, X_Z_H, X_TIME, X_TS, X_TRAVEL = range(10)
+N_STATE = 10  # X_TRAVEL: motor travel accumulated since the start, ∫|ω_m|dt [rad] (wear_drift)
 
 # --- input modes and output channels ------------------------------------------------------------
 MODE_VOLTAGE, MODE_CURRENT, MODE_TORQUE = 0, 1, 2
@@ -87,9 +88,18 @@ def position_coulomb(p: np.ndarray, n_harmonics: int, theta_m: float) -> tuple[f
 
 @njit(cache=True)
 def motor_levels(
-    p: np.ndarray, flags: np.ndarray, theta_m: float, speed: float, t_s: float, time_s: float
+    p: np.ndarray,
+    flags: np.ndarray,
+    theta_m: float,
+    speed: float,
+    t_s: float,
+    time_s: float,
+    travel_rad: float = 0.0,
 ) -> tuple[float, float]:
-    """Motor friction magnitudes (moving at |ω_m| = speed, static) before direction asymmetry, ≥ 0."""
+    """Motor friction magnitudes (moving at |ω_m| = speed, static) before direction asymmetry, ≥ 0.
+
+    `time_s` is the time since the run started (thermal_drift), `travel_rad` the motor travel
+    accumulated since then (wear_drift)."""
     law = flags[FL_MOTOR_LAW]
     if law == LAW_ARTICLE:
         c, periodic = position_coulomb(p, flags[FL_HARMONICS], theta_m)
@@ -115,6 +125,10 @@ def motor_levels(
         scale = 1.0 + p[TH_D] * (1.0 - math.exp(-time_s / p[TH_TAU]))
         moving *= scale
         static *= scale
+    if flags[FL_WEAR]:
+        wear = 1.0 + p[WEAR_K] * travel_rad
+        moving *= wear
+        static *= wear
     return max(moving, 0.0), max(static, 0.0)
 
 
@@ -241,6 +255,7 @@ def integrate(
     z_h = x[X_Z_H]
     time_s = x[X_TIME]
     t_s_prev = x[X_TS]
+    travel = x[X_TRAVEL]
     rows = 0
     for i in range(n_steps):
         load_torque = tau_ext[0] if const_load else tau_ext[i]
@@ -288,7 +303,7 @@ def integrate(
             z_l = z_new
 
         speed_m = abs(omega_m)
-        moving_m, static_m = motor_levels(p, flags, theta_m, speed_m, t_s, time_s)
+        moving_m, static_m = motor_levels(p, flags, theta_m, speed_m, t_s, time_s, travel)
         asym_m = p[DIR_F]
         viscous_m = 0.0 if motor_smooth else p[B_M]
         moving_l, static_l = load_levels(p, load_law, abs(omega_l_now))
@@ -351,6 +366,7 @@ def integrate(
 
         omega_m = new_omega
         theta_m += dt * omega_m
+        travel += dt * abs(omega_m)
         if not rigid:
             omega_l = new_omega_l
             theta_l += dt * omega_l
@@ -371,6 +387,7 @@ def integrate(
     x[X_Z_H] = z_h
     x[X_TIME] = time_s
     x[X_TS] = t_s_prev
+    x[X_TRAVEL] = travel
     return rows
 
 

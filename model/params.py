@@ -236,6 +236,15 @@ class ThermalDrift(Section):
     tau_th: Positive = Field(description="warm-up time constant [s]")
 
 
+class WearDrift(Section):
+    """Effect `wear_drift`: motor friction scales by 1 + k_wear·s_m, s_m the motor travel ∫|ω_m|dt
+    accumulated since the start of the run (rises as the gear wears in service)."""
+
+    k_wear: Annotated[float, Field(ge=0, allow_inf_nan=False)] = Field(
+        description="relative friction rise per radian of motor travel [1/rad]"
+    )
+
+
 class Numerics(Section):
     omega_stick_m: Positive = Field(
         default=1e-3,
@@ -255,6 +264,7 @@ EFFECT_SECTIONS = (
     "load_dependent_friction",
     "hysteresis",
     "thermal_drift",
+    "wear_drift",
 )
 
 
@@ -277,6 +287,7 @@ class HarmonicDriveModel(BaseModel):
     load_dependent_friction: LoadDependentFriction | None = None
     hysteresis: Hysteresis | None = None
     thermal_drift: ThermalDrift | None = None
+    wear_drift: WearDrift | None = None
     numerics: Numerics = Field(default_factory=Numerics)
 
     @model_validator(mode="after")
@@ -292,7 +303,14 @@ class HarmonicDriveModel(BaseModel):
                 f"transmission.K_s ({self.transmission.K_s}) must equal nonlinear_stiffness.K1 ({ns.K1})"
             )
         smooth = self.motor_friction.motor_law in ("lugre", "dahl")
-        for effect in ("stribeck", "direction_asymmetry", "load_dependent_friction", "thermal_drift"):
+        karnopp_only = (
+            "stribeck",
+            "direction_asymmetry",
+            "load_dependent_friction",
+            "thermal_drift",
+            "wear_drift",
+        )
+        for effect in karnopp_only:
             if smooth and getattr(self, effect) is not None:
                 raise ValueError(
                     f"{effect} applies to Karnopp-type motor laws,"

@@ -89,6 +89,9 @@ def kernel_vectors(model: HarmonicDriveModel) -> tuple[np.ndarray, np.ndarray]:
     if (th := model.thermal_drift) is not None:
         flags[k.FL_THERMAL] = 1
         p[k.TH_D], p[k.TH_TAU] = th.d_th, th.tau_th
+    if (wear := model.wear_drift) is not None:
+        flags[k.FL_WEAR] = 1
+        p[k.WEAR_K] = wear.k_wear
     p[k.OMEGA_STICK_M] = model.numerics.omega_stick_m
     p[k.OMEGA_STICK_L] = model.numerics.omega_stick_l
     return p, flags

@@ -315,6 +315,30 @@ def cmd_runs_export(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- hdrig trend ---------------------------------------------------------------------------------
+
+
+def cmd_trend(args: argparse.Namespace) -> int:
+    from rig.store import RunStore
+
+    document = actions.trend(RunStore(), run_id=args.run, unit=args.unit, plot_dir=args.plot)
+    if args.json:
+        _print_json(document.as_json())
+        return 0
+    header = ("run", "#", "time h", "cycles", "F_c N·m", "b N·m·s/rad", "K_s N·m/rad")
+    print("{:<36} {:>3} {:>8} {:>8} {:>18} {:>20} {:>16}".format(*header))
+    for p in document.points:
+        print(
+            f"{p.run_id:<36} {p.index:>3} {p.time_s / 3600:>8.3f} {p.duty_cycles:>8.0f}"
+            f" {p.coulomb_estimate:>9.5f} ±{p.coulomb_sigma:<7.5f}"
+            f" {p.viscous_estimate:>10.3e} ±{p.viscous_sigma:<8.1e}"
+            f" {p.stiffness_estimate:>8.1f} ±{p.stiffness_sigma:<6.1f}"
+        )
+    for path in document.plots:
+        _say(f"plot: {path}")
+    return 0
+
+
 # --- hdrig fit, hdrig gaps -----------------------------------------------------------------------
 
 
@@ -581,6 +605,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", required=True, metavar="PATH", help="file to write, or a folder to write <RUN>.<format> in"
     )
     export.set_defaults(handler=cmd_runs_export)
+
+    trend = sub.add_parser(
+        "trend", help="endurance checkpoints (friction, stiffness ±1σ) against time, for a run or a gear unit"
+    )
+    which = trend.add_mutually_exclusive_group(required=True)
+    which.add_argument("run", metavar="RUN", nargs="?", help="an endurance run's id")
+    which.add_argument("--unit", metavar="SERIAL", help="every run of the gear unit (the rig file's `unit:`)")
+    trend.add_argument(
+        "--plot", metavar="DIR", help="write friction_trend.png and stiffness_trend.png into DIR"
+    )
+    trend.add_argument("--json", action="store_true", help="the trend document as one JSON object")
+    trend.set_defaults(handler=cmd_trend)
 
     fit = sub.add_parser(
         "fit",

@@ -73,6 +73,10 @@ class RigConfig(BaseModel):
     model_config = ConfigDict(extra="allow", frozen=True)
 
     name: str = Field(description="rig name, recorded with every run")
+    unit: str | None = Field(
+        default=None,
+        description="serial number of the gear unit on the bench: `hdrig trend --unit` follows it",
+    )
     backend: str = Field(description="backend registry name: `sim`, `virtual-can`, `canopen`...")
     sample_rate_hz: float = Field(gt=0, le=20000, description="control and sample rate [Hz]")
     model: str | None = Field(default=None, description="model preset or file the simulated plant runs")

@@ -22,9 +22,10 @@ import yaml
 from pydantic import ValidationError
 
 from model.errors import UserInputError, describe_validation_error
+from model.run import Run
 from rig.config import RigConfig
 from rig.experiments import experiment_named
-from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext, context_from_run
+from rig.experiments.base import Experiment, ExperimentParams, Observer, Results, RigContext, context_from_run
 from rig.faults import DeviceFaultError
 from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, open_rig
 from rig.runfile import json_text
@@ -208,13 +209,15 @@ def _analyze(
     """Tables, plots and metrics of a complete run, its analysis state kept in the catalog throughout."""
     store.set_analysis(run_id, AnalysisState.RUNNING)  # a process killed from here on leaves it `interrupted`
     try:
-        run = store.read(run_id)
+        run = _read_for_analysis(store, run_id, experiment, params)
         results = experiment.analyze(run, params, ctx)
         artifacts = _save_results(store, run_id, results)
         plot_dir = store.add_artifact(run_id, "plots")
         plot_dir.mkdir(parents=True, exist_ok=True)
         artifacts += experiment.plot(run, results, params, ctx, plot_dir)
         store.set_metrics(run_id, results.metrics)
+        if results.checkpoints:
+            store.set_checkpoints(run_id, ctx.config.unit, results.checkpoints)
     except Exception:
         store.set_analysis(run_id, AnalysisState.FAILED)
         raise
@@ -267,6 +270,9 @@ def _record(
         start += seg.cycles
     input_column = "u" if all(seg.mode == ControlMode.VOLTAGE for seg in program) else "i_cmd"
     writer.update_meta({"segments": segments, "input_column": input_column, "theta_m0": theta_m0})
+    observer = experiment.observer(params, ctx, program)
+    if observer is not None:
+        sink = _observed(sink, observer, writer)
     total = sum(seg.cycles for seg in program)
     done = 0
     for seg in program:
@@ -281,6 +287,27 @@ def _record(
         if result.aborted is not None:
             return result.aborted, ctx
     return None, ctx
+
+
+def _observed(
+    sink: Callable[[Block], None], observer: Observer, writer: RunWriter
+) -> Callable[[Block], None]:
+    """A sink that also feeds the experiment's observer, whose summary goes into the run's metadata each
+    time it has news (so an interrupted run keeps what was observed until then)."""
+
+    def observed(block: Block) -> None:
+        sink(block)
+        if observer.feed(block):
+            writer.update_meta({"observed": observer.summary()})
+
+    return observed
+
+
+def _read_for_analysis(store: RunStore, run_id: str, experiment: Experiment, params: ExperimentParams) -> Run:
+    """The rows the experiment's analysis reads: the whole run, or only the segments it names (a long
+    run's checkpoints, never its hours of duty cycle)."""
+    labels = [str(seg["label"]) for seg in store.get(run_id)["meta"].get("segments", [])]
+    return store.read(run_id, segments=experiment.analyzed_segments(params, labels))
 
 
 def _segment_progress(

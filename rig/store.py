@@ -75,6 +75,8 @@ class AnalysisState(StrEnum):
     DONE = "done"
     INTERRUPTED = "interrupted"  # that process died first: `hdrig runs analyze RUN` runs it again
     FAILED = "failed"  # it raised (the run's reason says why)
+
+
 _CHUNK = re.compile(r"(?:part-(\d+)|merged-(\d+)-(\d+))\.parquet")
 MERGE_FANIN = 16
 """Parts per merged file, and merged files of one size per file of the next (16, 256, 4096 parts...)."""
@@ -447,6 +449,40 @@ class RunStore:
         with self._db() as db:
             self._row(db, run_id)
             db.execute("UPDATE runs SET metrics = ? WHERE id = ?", (json_text(metrics), run_id))
+
+    def set_checkpoints(self, run_id: str, unit: str | None, checkpoints: list[dict[str, Any]]) -> None:
+        """Replace a run's checkpoint estimates (each with `index` and `t_s` [s]) for the gear `unit`."""
+        with self._db() as db:
+            self._row(db, run_id)
+            db.execute("DELETE FROM checkpoints WHERE run_id = ?", (run_id,))
+            db.executemany(
+                "INSERT INTO checkpoints (run_id, idx, unit, t_s, estimates) VALUES (?, ?, ?, ?, ?)",
+                [(run_id, int(c["index"]), unit, float(c["t_s"]), json_text(c)) for c in checkpoints],
+            )
+
+    def checkpoints(self, run_id: str | None = None, unit: str | None = None) -> list[dict[str, Any]]:
+        """Checkpoint estimates of one run, or of every run of a gear unit, in order of the runs' start
+        and then of the checkpoints; each with its run's `run_id`, `started` and `unit`."""
+        if (run_id is None) == (unit is None):
+            raise ValueError("checkpoints: give a run id or a unit, not both")
+        query = (
+            "SELECT c.run_id, c.unit, c.estimates, r.started"
+            " FROM checkpoints c JOIN runs r ON r.id = c.run_id"
+            f" WHERE {'c.run_id' if run_id is not None else 'c.unit'} = ? ORDER BY r.started, c.run_id, c.idx"
+        )
+        with self._db() as db:
+            if run_id is not None:
+                self._row(db, run_id)
+            rows = db.execute(query, (run_id if run_id is not None else unit,)).fetchall()
+        return [
+            {
+                **json.loads(row["estimates"]),
+                "run_id": row["run_id"],
+                "unit": row["unit"],
+                "started": row["started"],
+            }
+            for row in rows
+        ]
 
     def set_analysis(self, run_id: str, state: AnalysisState) -> None:
         """Record where a run's analysis stands; `running` names this process as the one doing it, so

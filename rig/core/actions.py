@@ -36,6 +36,7 @@ from rig.core.documents import (
     PlannedRun,
     RunDocument,
     RunPlan,
+    TrendDocument,
 )
 from rig.experiments import CAMPAIGN, CAMPAIGN_ORDER, EXPERIMENTS, experiment_named
 from rig.faults import DeviceFaultError
@@ -377,3 +378,19 @@ def gaps_document(result: GapsResult, folder: Path | None = None) -> GapsDocumen
         report=[str(p) for p in result.report],
         folder=str(folder) if folder else None,
     )
+
+
+# ---- trends ---------------------------------------------------------------------------------------
+
+
+def trend(
+    store: RunStore, run_id: str | None = None, unit: str | None = None, plot_dir: str | Path | None = None
+) -> TrendDocument:
+    """`hdrig trend`: the checkpoints of an endurance run, or of every run of a gear unit, against time
+    and duty cycles, with the online tracker's level; `plot_dir` also gets the plots."""
+    from rig.trend import plot_trend, trend_document
+
+    document = trend_document(store, run_id=run_id, unit=unit)
+    if plot_dir is not None:
+        document.plots = [str(p) for p in plot_trend(document, Path(plot_dir))]
+    return document

@@ -166,3 +166,37 @@ class JobDocument(Document):
     runs: list[str] = Field(default_factory=list, description="ids of the runs it recorded")
     result: dict[str, Any] | list[Any] | None = Field(default=None, description="the finished job's document")
     error: str | None = Field(default=None, description="why it failed, one line")
+
+
+class TrendPoint(Document):
+    """One checkpoint of an endurance run: where in the gear's life, and what it measured (±1σ)."""
+
+    run_id: str
+    index: int = Field(description="the checkpoint's number within its run")
+    time_s: float = Field(description="time since the first run's start, at the checkpoint's middle [s]")
+    duty_cycles: float = Field(description="duty cycles done before it, over the runs listed [–]")
+    travel_rad: float = Field(description="motor travel in its run up to its middle [rad]")
+    coulomb_estimate: float = Field(description="friction level F_c at the motor [N·m]")
+    coulomb_sigma: float = Field(description="its standard error [N·m]")
+    viscous_estimate: float = Field(description="viscous slope b at the motor [N·m·s/rad]")
+    viscous_sigma: float = Field(description="its standard error [N·m·s/rad]")
+    stiffness_estimate: float = Field(description="transmission stiffness K_s at the output [N·m/rad]")
+    stiffness_sigma: float = Field(description="its standard error [N·m/rad]")
+
+
+class TrackPoint(Document):
+    """The online tracker's friction level at one moment of a run (RLS with forgetting)."""
+
+    run_id: str
+    time_s: float = Field(description="time since the first run's start [s]")
+    level_nm: float = Field(description="friction level F_c the tracker follows [N·m]")
+
+
+class TrendDocument(Document):
+    """`hdrig trend --json`: checkpoint estimates of one run or of every run of one gear unit, in order."""
+
+    unit: str | None = Field(default=None, description="the gear unit's serial number, from the rig file")
+    run_ids: list[str]
+    points: list[TrendPoint]
+    track: list[TrackPoint] = Field(default_factory=list, description="the online tracker's level")
+    plots: list[str] = Field(default_factory=list, description="PNG files written (--plot DIR)")

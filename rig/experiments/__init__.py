@@ -1,5 +1,5 @@
 """The experiments, by name. `campaign` runs the article's eight in CAMPAIGN_ORDER; `compensation` needs a
-model file and tests it, so it stands outside the campaign."""
+model file and tests it, and `endurance` runs for hours, so they stand outside the campaign."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from model.errors import UserInputError
 from rig.experiments.base import Experiment
 from rig.experiments.chirp import Chirp
 from rig.experiments.compensation import Compensation
+from rig.experiments.endurance import Endurance
 from rig.experiments.load_variation import LoadVariation
 from rig.experiments.position_friction import PositionFriction
 from rig.experiments.pulse import Pulse
@@ -36,6 +37,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         Ramp(),
         Chirp(),
         Compensation(),
+        Endurance(),
     )
 }
 

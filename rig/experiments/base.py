@@ -10,7 +10,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict
 from model.errors import UserInputError
 from model.run import Run
 from rig.config import RigConfig, load_rig_config
-from rig.interface import ControlMode, Segment
+from rig.interface import Block, ControlMode, Segment
 
 
 class ProgramError(UserInputError):
@@ -78,6 +78,22 @@ class Results:
     metrics: dict[str, float | int | str] = field(default_factory=dict)
     tables: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    checkpoints: list[dict[str, float]] = field(default_factory=list)
+    """Estimates made at points along a long run (endurance), each a row of the catalog's `checkpoints`
+    table with its `index` and `t_s` [s]; `hdrig trend` shows them against time across runs."""
+
+
+class Observer(Protocol):
+    """Watches a run's samples as they are recorded (an online estimator): what an experiment learns from
+    hours of samples its analysis never loads."""
+
+    def feed(self, block: Block) -> bool:
+        """Take one block of samples as recorded; True when `summary()` has news worth keeping now."""
+        ...
+
+    def summary(self) -> dict[str, Any]:
+        """Small JSON-able results so far, kept in the run's metadata under `observed`."""
+        ...
 
 
 def segment_rows(run: Run, label: str) -> slice:
@@ -113,3 +129,12 @@ class Experiment(ABC):
     def plot(self, run: Run, results: Results, params: Any, ctx: RigContext, out_dir: Path) -> list[Path]:
         """PNG files a person wants to look at; written into out_dir. Default: none."""
         return []
+
+    def observer(self, params: Any, ctx: RigContext, program: list[Segment]) -> Observer | None:
+        """What watches the samples while the program plays (the runner feeds it). Default: nothing."""
+        return None
+
+    def analyzed_segments(self, params: Any, labels: list[str]) -> list[str] | None:
+        """The segments `analyze` reads, of those recorded (None: the whole run). A run of hours names
+        the few it needs, so the store never loads the rest."""
+        return None

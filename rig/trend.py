@@ -1,0 +1,106 @@
+"""Trends of a gear over its life: the checkpoint estimates of endurance runs against time and duty cycles,
+for one run or every run of one gear unit (the rig file's `unit:`), with the online tracker's level beside.
+
+Reads only the catalog (table `checkpoints`) and each run's metadata (`observed`): no samples.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from pathlib import Path
+
+from model.errors import UserInputError
+from rig.core.documents import TrackPoint, TrendDocument, TrendPoint
+from rig.experiments.plots import new_figure, save_figure
+from rig.store import RunStore
+
+_ESTIMATES = ("coulomb", "viscous", "stiffness")
+
+
+def trend_document(store: RunStore, run_id: str | None = None, unit: str | None = None) -> TrendDocument:
+    """The checkpoints of one run (`run_id`) or of every run of a gear `unit`, oldest first; time is
+    counted from the first run's start, so runs of one unit line up on one axis."""
+    if (run_id is None) == (unit is None):
+        raise UserInputError("trend: name one run (RUN) or one gear unit (--unit SERIAL)")
+    rows = store.checkpoints(run_id=run_id, unit=unit)
+    if not rows:
+        what = f"run {run_id}" if run_id is not None else f"unit {unit!r}"
+        raise UserInputError(f"trend: {what} has no checkpoints in {store.catalog_path} (run `endurance`)")
+    origin = datetime.fromisoformat(rows[0]["started"])
+    points, tracks = [], []
+    cycles_before = 0.0  # duty cycles of the earlier runs of the unit
+    last_run, run_cycles = None, 0.0
+    for row in rows:
+        if row["run_id"] != last_run:
+            cycles_before += run_cycles
+            last_run = row["run_id"]
+            offset_s = (datetime.fromisoformat(row["started"]) - origin).total_seconds()
+            observed = store.get(row["run_id"])["meta"].get("observed", {}).get("track", {})
+            tracks += [
+                TrackPoint(run_id=row["run_id"], time_s=offset_s + t, level_nm=level)
+                for t, level in zip(observed.get("t_s", []), observed.get("level_nm", []), strict=True)
+            ]
+        run_cycles = float(row.get("duty_cycles") or 0.0)
+        points.append(
+            TrendPoint(
+                run_id=row["run_id"],
+                index=int(row["index"]),
+                time_s=offset_s + float(row["t_s"]),
+                duty_cycles=cycles_before + run_cycles,
+                travel_rad=float(row["travel_rad"]),
+                **{f"{name}_{kind}": float(row[key]) for name, kind, key in _fields()},
+            )
+        )
+    return TrendDocument(
+        unit=unit or rows[0]["unit"],
+        run_ids=list(dict.fromkeys(r["run_id"] for r in rows)),
+        points=points,
+        track=tracks,
+    )
+
+
+def _fields() -> list[tuple[str, str, str]]:
+    keys = {
+        "coulomb": ("coulomb_nm", "coulomb_sigma_nm"),
+        "viscous": ("viscous_nm_s_rad", "viscous_sigma_nm_s_rad"),
+        "stiffness": ("stiffness_nm_rad", "stiffness_sigma_nm_rad"),
+    }
+    return [(n, kind, keys[n][i]) for n in _ESTIMATES for i, kind in enumerate(("estimate", "sigma"))]
+
+
+def plot_trend(document: TrendDocument, out_dir: Path) -> list[Path]:
+    """Friction level and stiffness against time, checkpoints with ±1σ bars and the online level."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    hours = [p.time_s / 3600.0 for p in document.points]
+    fig, ax = new_figure(f"Friction level over time ({document.unit or ', '.join(document.run_ids)})")
+    ax.errorbar(
+        hours,
+        [p.coulomb_estimate for p in document.points],
+        yerr=[p.coulomb_sigma for p in document.points],
+        fmt="o",
+        capsize=3,
+        label="checkpoint fit F_c (±1σ)",
+    )
+    if document.track:
+        ax.plot(
+            [p.time_s / 3600.0 for p in document.track],
+            [p.level_nm for p in document.track],
+            lw=1.0,
+            label="online RLS level (duty cycle)",
+        )
+    ax.set_xlabel("time since the first run's start [h]")
+    ax.set_ylabel("friction level [N·m]")
+    ax.legend()
+    paths = [save_figure(fig, out_dir / "friction_trend.png")]
+    fig, ax = new_figure("Stiffness over time")
+    ax.errorbar(
+        hours,
+        [p.stiffness_estimate for p in document.points],
+        yerr=[p.stiffness_sigma for p in document.points],
+        fmt="o",
+        capsize=3,
+    )
+    ax.set_xlabel("time since the first run's start [h]")
+    ax.set_ylabel("K_s [N·m/rad]")
+    paths.append(save_figure(fig, out_dir / "stiffness_trend.png"))
+    return paths
