@@ -341,6 +341,12 @@ def cmd_trend(args: argparse.Namespace) -> int:
 
 # --- hdrig fit, hdrig gaps -----------------------------------------------------------------------
 
+MAP_HELP = (
+    "read files with other column names, units or gains: TARGET=SOURCE[*GAIN][+OFFSET] (e.g."
+    " theta_m=enc*deg, i_cmd=volts*2.5), or a YAML/JSON file of such pairs; repeatable; kept in the run's"
+    " metadata"
+)
+
 
 def _analysis(args: argparse.Namespace, action: Callable[..., Any], **options: Any) -> Any:
     """Run fit or gaps over the store with a progress bar; the action's document."""
@@ -349,7 +355,14 @@ def _analysis(args: argparse.Namespace, action: Callable[..., Any], **options: A
 
     with ProgressBar(enabled=not args.quiet) as bar:
         return action(
-            args.data, args.model, RunStore(), out=args.out, report_dir=args.report, progress=bar, **options
+            args.data,
+            args.model,
+            RunStore(),
+            out=args.out,
+            report_dir=args.report,
+            progress=bar,
+            mapping=args.map,
+            **options,
         )
 
 
@@ -639,6 +652,7 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--no-joint", action="store_true", help="staged estimates only (no joint refinement)")
     fit.add_argument("--json", action="store_true", help="one JSON document on stdout")
     fit.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    fit.add_argument("--map", action="append", metavar="ENTRY_OR_FILE", help=MAP_HELP)
     fit.set_defaults(handler=cmd_fit)
 
     gaps = sub.add_parser(
@@ -666,6 +680,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     gaps.add_argument("--json", action="store_true", help="one JSON document on stdout (CONTRACT.md)")
     gaps.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    gaps.add_argument("--map", action="append", metavar="ENTRY_OR_FILE", help=MAP_HELP)
     gaps.set_defaults(handler=cmd_gaps)
 
     keys = sub.add_parser("keys", help="API keys of the service: create, list, revoke")

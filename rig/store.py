@@ -58,6 +58,7 @@ from rig.runfile import (
     read_run,
     write_parquet,
 )
+from rig.importmap import MAPPED_SUFFIXES, ColumnSource, read_mapped
 from rig.status import RunStatus
 
 STORED_STATUSES = (RunStatus.RUNNING, RunStatus.COMPLETE, RunStatus.ABORTED, RunStatus.INTERRUPTED)
@@ -872,8 +873,13 @@ class RunWriter:
             self.finish(RunStatus.ABORTED, reason=f"aborted: {str(exc) or type(exc).__name__}")
 
 
-def load_runs(refs: list[str], store: RunStore | None = None) -> list[Run]:
-    """Runs by store id, by file path, or `latest` (newest complete run of each experiment)."""
+def load_runs(
+    refs: list[str], store: RunStore | None = None, mapping: dict[str, ColumnSource] | None = None
+) -> list[Run]:
+    """Runs by store id, by file path, or `latest` (newest complete run of each experiment).
+
+    Files are read through a column `mapping` (`rig.importmap`) when one is given, and `.mat` files
+    always (with an empty mapping, their run-format columns as they are)."""
     store = store or RunStore()
     runs: list[Run] = []
     for ref in refs:
@@ -885,6 +891,8 @@ def load_runs(refs: list[str], store: RunStore | None = None) -> list[Run]:
             if not newest:
                 raise UserInputError(f"--data latest: no complete run in the store at {store.home}")
             runs += [store.read(run_id) for run_id in newest.values()]
+        elif (mapping or Path(ref).suffix.lower() == ".mat") and Path(ref).suffix.lower() in MAPPED_SUFFIXES:
+            runs.append(read_mapped(ref, mapping or {}))
         elif Path(ref).suffix.lower() in READ_SUFFIXES or Path(ref).exists():
             runs.append(read_run(ref))
         else:

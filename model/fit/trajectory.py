@@ -12,6 +12,7 @@ is reported as not determined by the data, and keeps its starting value.
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
 import re
@@ -173,6 +174,29 @@ class TrajectoryProblem:
     def size(self) -> int:
         return sum(len(w.run) * len(w.channels) for w in self.windows)
 
+    @property
+    def window_of_residual(self) -> np.ndarray:
+        """For each element of the residual, the index of its window (the clusters of the covariance)."""
+        sizes = [len(w.run) * len(w.channels) for w in self.windows]
+        return np.repeat(np.arange(len(sizes)), sizes)
+
+    def split(self, every: int) -> tuple[TrajectoryProblem, TrajectoryProblem]:
+        """(training, held-out): every `every`-th window is held out, so both span every run."""
+        train, test = copy.copy(self), copy.copy(self)
+        train.windows = [w for i, w in enumerate(self.windows) if i % every != every - 1]
+        test.windows = [w for i, w in enumerate(self.windows) if i % every == every - 1]
+        if not train.windows or not test.windows:
+            raise UserInputError(f"too little data for held-out windows: {len(self.windows)} window(s)")
+        return train, test
+
+    def for_parameters(self, model: HarmonicDriveModel, names: list[str]) -> TrajectoryProblem:
+        """The same windows and scales, with another base model and free parameters."""
+        other = copy.copy(self)
+        other.model, other.names = model, names
+        other.start = get_values(model, names)
+        other.x_scale = np.array([abs(v) if v != 0 else 1.0 for v in other.start.values()])
+        return other
+
 
 def fit_trajectories(
     model: HarmonicDriveModel,
@@ -185,12 +209,16 @@ def fit_trajectories(
     """Refine the named parameters of `model` on the runs; estimates with standard errors."""
     if not names:
         raise UserInputError("a trajectory fit needs at least one free parameter")
-    problem = TrajectoryProblem(model, runs, names, window_s, dt_s)
+    return fit_problem(TrajectoryProblem(model, runs, names, window_s, dt_s), max_evaluations)
+
+
+def fit_problem(problem: TrajectoryProblem, max_evaluations: int = 60) -> TrajectoryFit:
+    """Refine the problem's free parameters of its model on its windows; estimates with standard errors."""
     r0 = problem.residuals(start_point(problem))
     result, estimates = solve(problem, max_evaluations)
     final = {p.name: p.estimate for p in estimates}
-    fitted = with_values(model, final)
-    x_final = np.array([final[n] for n in names]) / problem.x_scale
+    fitted = with_values(problem.model, final)
+    x_final = np.array([final[n] for n in problem.names]) / problem.x_scale
     notes = [f"least_squares: {result.message} ({result.nfev} evaluations)"]
     return TrajectoryFit(fitted, estimates, _rms(r0), _rms(problem.residuals(x_final)), len(r0), notes)
 
@@ -229,6 +257,25 @@ def _rms(residual: np.ndarray) -> float:
     return float(np.sqrt(np.mean(residual**2)))
 
 
+def _window_robust_covariance(jac: np.ndarray, fun: np.ndarray, groups: np.ndarray, s2: float) -> np.ndarray:
+    """Covariance of the estimates, windows taken as independent clusters (the sandwich estimator).
+
+    Within a window the residual is one smooth curve (it starts from a noisy measured state and the
+    replay integrates every error), so its samples are far from independent and s²·(JᵀJ)⁻¹ is several
+    times overconfident. Windows restart from the measurement, so they are nearly independent of each
+    other: the sandwich (JᵀJ)⁻¹·Σ_w (J_wᵀr_w)(J_wᵀr_w)ᵀ·(JᵀJ)⁻¹, with the G/(G−1) small-sample factor.
+    With fewer than 10 windows the sandwich is itself too noisy, and the white-residual form is kept.
+    """
+    bread = np.linalg.pinv(jac.T @ jac)
+    count = int(groups.max()) + 1 if groups.size else 0
+    if count < 10 or len(groups) != len(fun):
+        return bread * s2
+    scores = np.zeros((count, jac.shape[1]))
+    np.add.at(scores, groups, jac * fun[:, None])
+    meat = scores.T @ scores * count / (count - 1)
+    return bread @ meat @ bread
+
+
 def _uncertainty(
     problem: TrajectoryProblem, x: np.ndarray, jac: np.ndarray, fun: np.ndarray
 ) -> list[ParameterEstimate]:
@@ -246,7 +293,7 @@ def _uncertainty(
         if is_weak:
             confounded |= np.abs(row) > 0.3
     try:
-        cov = np.linalg.pinv(jac.T @ jac) * s2
+        cov = _window_robust_covariance(jac, fun, problem.window_of_residual, s2)
         se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     except np.linalg.LinAlgError:
         se = np.full(n, math.inf)

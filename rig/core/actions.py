@@ -279,10 +279,12 @@ def _analysis_folder(store: RunStore, kind: str, analysis_id: str | None) -> Pat
     return folder
 
 
-def _runs_for(data: Sequence[str], store: RunStore) -> list[Run]:
+def _runs_for(data: Sequence[str], store: RunStore, mapping: Sequence[str] | None = None) -> list[Run]:
+    from rig.importmap import parse_mapping
+
     if not data:
         raise UserInputError("data: name at least one run id, run file or `latest`")
-    return load_runs(list(data), store)
+    return load_runs(list(data), store, parse_mapping(mapping))
 
 
 def fit(
@@ -294,12 +296,14 @@ def fit(
     joint: bool = True,
     progress: Progress | None = None,
     analysis_id: str | None = None,
+    mapping: Sequence[str] | None = None,
 ) -> FitDocument:
-    """Identify the model's parameters from runs (store ids, files or `latest`); see the module doc."""
+    """Identify the model's parameters from runs (store ids, files or `latest`); see the module doc.
+    `mapping`: `--map` entries or mapping files for files with other column names (`rig.importmap`)."""
     from rig.identification import identify, save_identified
 
     start = load_model(model)
-    runs = _runs_for(data, store)
+    runs = _runs_for(data, store, mapping)
     folder = _analysis_folder(store, "fit", analysis_id)
     report = Path(report_dir) if report_dir is not None else None
     result = identify(runs, start, joint=joint, report_dir=report, progress=progress)
@@ -317,13 +321,14 @@ def find_gaps(
     report_dir: str | Path | None = None,
     progress: Progress | None = None,
     analysis_id: str | None = None,
+    mapping: Sequence[str] | None = None,
 ) -> GapsDocument:
     """The model-gap workflow on runs; the model with the effects added (if any) is written as the
     module says."""
     from model.gaps import find_gaps as workflow
 
     start = load_model(model)
-    runs = _runs_for(data, store)
+    runs = _runs_for(data, store, mapping)
     folder = _analysis_folder(store, "gaps", analysis_id)
     model_out = Path(out) if out is not None else folder / MODEL_FILE
     result = workflow(runs, start, report_dir=report_dir, progress=progress, model_out=model_out)
@@ -354,6 +359,9 @@ def fit_document(result: Identification, folder: Path | None = None) -> FitDocum
         report=str(result.report_file) if result.report_file else None,
         notes=list(result.notes),
         folder=str(folder) if folder else None,
+        held_out=result.held_out,
+        inverse_model=result.inverse_model,
+        imported=list(result.imported),
     )
 
 

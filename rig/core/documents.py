@@ -103,6 +103,19 @@ class FitDocument(Document):
     report: str | None = Field(description="report.md, when a report was asked for")
     notes: list[str]
     folder: str | None = Field(default=None, description="the analysis folder holding its files")
+    held_out: dict[str, Any] | None = Field(
+        default=None,
+        description="fit error of each candidate model (start, staged, joint) on held-out shooting windows,"
+        " and which one was kept (never worse than the start)",
+    )
+    inverse_model: dict[str, Any] | None = Field(
+        default=None,
+        description="runs without metadata: the plain inverse-model least squares (torque = M·a + F_v·v +"
+        " F_c·sgn v + offset) and the fitted model's figures in the same terms",
+    )
+    imported: list[dict[str, Any]] = Field(
+        default_factory=list, description="the column mappings (`--map`) the runs were read through"
+    )
 
 
 class GapStepDocument(Document):

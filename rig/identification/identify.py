@@ -10,15 +10,17 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from model.errors import UserInputError
-from model.fit.parameters import get_values
-from model.fit.trajectory import TrajectoryProblem, fit_trajectories
+from model.fit.parameters import get_values, with_values
+from model.fit.trajectory import TrajectoryFit, TrajectoryProblem, fit_problem
 from model.params import HarmonicDriveModel, save_model
 from model.run import Run
-from rig.identification.staged import staged_estimates
+from rig.identification.column_stage import axis_figures, plan_for_plain_runs, seeded_model
+from rig.identification.staged import REQUIRED_META, staged_estimates
 from rig.identification.validation import ValidationReport, validate
 
 JOINT_CANDIDATES = ("s3", "k_v", "static_factor", "K_s", "J_m", "J_l", "f_cl", "b_l", "R", "K_b")
@@ -29,8 +31,9 @@ JOINT_EXPERIMENTS = ("pulse", "step", "sine")
 """Runs whose trajectories the joint refinement matches: open-loop transients and closed-loop tracking."""
 JOINT_WINDOW_S = 0.1
 FIT_METRIC = (
-    "RMS of the shooting residual over 0.1 s windows of the pulse/step/sine runs"
-    " (θ_m and θ_l, each scaled by its spread in the data) [–]"
+    "RMS of the shooting residual over 0.1 s windows of the pulse/step/sine runs (of every run with an"
+    " input column, for runs without experiment metadata) (θ_m and θ_l, each scaled by its spread in the"
+    " data) [–]"
 )
 
 Progress = Callable[[str, float], None]
@@ -57,10 +60,27 @@ class Identification:
     notes: list[str] = field(default_factory=list)
     model_file: Path | None = None
     report_file: Path | None = None
+    held_out: dict[str, Any] | None = (
+        None  # the held-out windows' errors of each candidate, and which was kept
+    )
+    inverse_model: dict[str, Any] | None = (
+        None  # runs without metadata: the inverse-model fit beside the model
+    )
+    imported: list[dict[str, Any]] = field(default_factory=list)  # the runs' column mappings (`--map`)
 
 
 def _joint_runs(runs: list[Run]) -> list[Run]:
     return [r for r in runs if r.meta.get("experiment") in JOINT_EXPERIMENTS and r.input_column is not None]
+
+
+def carries_stage_metadata(run: Run) -> bool:
+    """Whether a run carries what the staged estimates read (experiment, segments, rig constants)."""
+    return all(key in run.meta for key in REQUIRED_META)
+
+
+HOLDOUT_EVERY = 4
+"""Every fourth shooting window is held out: the joint step fits on the others, and the model kept is
+the one best on these (start, staged, joint)."""
 
 
 def identify(
@@ -70,56 +90,192 @@ def identify(
     report_dir: Path | None = None,
     progress: Progress | None = None,
 ) -> Identification:
-    """Staged estimates, then (if `joint`) all determined parameters together on trajectories."""
+    """Staged estimates where the runs carry what each stage needs, what the columns determine of the
+    others, then (if `joint`) the determined parameters together on trajectories; the model returned is
+    never worse than the start or the staged estimates on held-out windows."""
     say = progress or (lambda label, fraction: None)
     if not runs:
         raise UserInputError("fit needs at least one run (--data)")
-    say("staged estimates", 0.05)
-    staged = staged_estimates(runs, start)
-    notes = list(staged.notes)
-    rows = {
-        e.name: ParameterRow(
-            e.name,
-            _start_value(start, e.name),
-            e.value,
-            e.std_error,
-            e.identifiable,
-            e.stage,
-            e.note,
-        )
-        for e in staged.estimates
-    }
-    model = staged.model
-    trajectory_runs = _joint_runs(runs)
+    staged_runs = [r for r in runs if carries_stage_metadata(r)]
+    plain = [r for r in runs if not carries_stage_metadata(r)]
+    inverse: dict[str, Any] | None = None
+    if staged_runs:
+        say("staged estimates", 0.05)
+        staged = staged_estimates(staged_runs, start)
+        notes = list(staged.notes)
+        if plain:
+            notes.append(
+                f"{len(plain)} run(s) without experiment metadata: used by the joint refinement's"
+                " trajectories only"
+            )
+        rows = {
+            e.name: ParameterRow(
+                e.name, _start_value(start, e.name), e.value, e.std_error, e.identifiable, e.stage, e.note
+            )
+            for e in staged.estimates
+        }
+        staged_model = staged.model
+        trajectory_runs = _joint_runs(staged_runs) + [r for r in plain if r.input_column is not None]
+        names = [n for n in JOINT_CANDIDATES if n in rows and rows[n].identifiable]
+    else:
+        say("what the columns determine", 0.05)
+        plan = plan_for_plain_runs(plain, start)
+        notes = [
+            "no run carries experiment metadata: fitted by trajectory least squares on what the"
+            " columns determine",
+            *plan.notes,
+        ]
+        rows = {
+            name: ParameterRow(
+                name, _start_value(start, name), _start_value(start, name), None, False, "columns", why
+            )
+            for name, why in plan.held.items()
+            if not math.isnan(_start_value(start, name))
+        }
+        for name, (value, se) in plan.estimates.items():
+            rows[name] = ParameterRow(name, _start_value(start, name), value, se, True, "motor")
+        for name in plan.free:
+            rows[name] = ParameterRow(
+                name,
+                _start_value(start, name),
+                _start_value(plan.start, name),
+                None,
+                False,
+                "trajectory",
+                "not refined (--no-joint)",
+            )
+        staged_model = plan.start
+        trajectory_runs = [r for r in plain if r.input_column is not None]
+        names = list(plan.free)
+        if plan.inverse is not None:
+            inverse = {"fit": plan.inverse.as_json()}
+            seeded = seeded_model(plan.start, plan.inverse)
+            if seeded is not None:
+                staged_model = _better_start(seeded, plan.start, trajectory_runs, notes)
     if not trajectory_runs:
         notes.append(
             f"no {'/'.join(JOINT_EXPERIMENTS)} run: no trajectory to refine on, fit error not measured"
         )
-        return _finish(model, list(rows.values()), math.nan, math.nan, notes, runs, report_dir, say)
+        return _finish(staged_model, list(rows.values()), math.nan, math.nan, notes, runs, report_dir, say)
     problem = TrajectoryProblem(start, trajectory_runs, [], JOINT_WINDOW_S, 1e-4)
-    before = _rms(problem.residuals_of(start))
-    if joint:
-        names = [n for n in JOINT_CANDIDATES if n in rows and rows[n].identifiable]
-        if names:
-            say("joint refinement", 0.3)
-            refined = fit_trajectories(model, trajectory_runs, names, window_s=JOINT_WINDOW_S)
-            notes += refined.notes
-            staged_cost = _rms(problem.residuals_of(model))
-            if _rms(problem.residuals_of(refined.model)) < staged_cost:
-                model = refined.model
-                for p in refined.parameters:
-                    row = rows[p.name]
-                    row.stage += " + joint"
-                    if p.identifiable:
-                        row.estimate, row.uncertainty = p.estimate, p.std_error
-                    else:
-                        row.note = (
-                            row.note + "; " if row.note else ""
-                        ) + f"joint: {p.note}, staged value kept"
+    train, _ = problem.split(HOLDOUT_EVERY)
+    is_held = problem.window_of_residual % HOLDOUT_EVERY == HOLDOUT_EVERY - 1
+    candidates = {"start": start, "staged": staged_model}
+    residual = {label: problem.residuals_of(m) for label, m in candidates.items()}
+    refined = None
+    if joint and names:
+        say("joint refinement", 0.3)
+        # From whichever of the two is closer on the training windows: the staged values can be worse.
+        base = min(candidates, key=lambda label: _rms(residual[label][~is_held]))
+        refined = fit_problem(train.for_parameters(candidates[base], names))
+        notes += refined.notes + (
+            [f"joint refinement started from the {base} model"] if base != "staged" else []
+        )
+        candidates["joint"] = refined.model
+        residual["joint"] = problem.residuals_of(refined.model)
+    cost = {label: _rms(r) for label, r in residual.items()}
+    held = {label: _rms(r[is_held]) for label, r in residual.items()}
+    # Never worse than the start: only models no worse on every window compete, on the held-out ones.
+    fair = [label for label in candidates if cost[label] <= cost["start"]]
+    kept = min(fair, key=lambda label: held[label])
+    if kept == "joint" and refined is not None:
+        # Chosen on held-out windows; the values then use every window (a few breakaways more), kept only
+        # if that does not lose what was won: never worse than the start or the staged model held out.
+        polished = fit_problem(problem.for_parameters(refined.model, names), max_evaluations=20)
+        again = problem.residuals_of(polished.model)
+        bar = min(held[label] for label in candidates if label != "joint")
+        if _rms(again) <= cost["joint"] and _rms(again[is_held]) <= bar:
+            refined, candidates["joint"] = polished, polished.model
+            cost["joint"], held["joint"] = _rms(again), _rms(again[is_held])
+            notes.append("joint refinement polished on every window after it won on the held-out ones")
+    combined = _combined(rows, refined) if refined is not None else None
+    if combined is not None:
+        candidates["combined"], residual["combined"] = combined, problem.residuals_of(combined)
+        cost["combined"], held["combined"] = _rms(residual["combined"]), _rms(residual["combined"][is_held])
+        fair = [label for label in candidates if cost[label] <= cost["start"]]
+        kept = min(fair, key=lambda label: held[label])
+    verdicts = ", ".join(f"{label} {held[label]:.4g}" for label in candidates)
+    notes.append(f"held-out windows (1 in {HOLDOUT_EVERY}): {verdicts}; kept the {kept} model")
+    if refined is not None and kept not in ("joint", "combined"):
+        notes.append(
+            f"the joint refinement did not improve on the {kept} model on held-out windows"
+            f" ({held['joint']:.4g} against {held[kept]:.4g}): {kept} values kept"
+        )
+    if kept in ("joint", "combined") and refined is not None:
+        weights = _combination(rows, refined) if kept == "combined" else {}
+        for p in refined.parameters:
+            if p.name in weights:
+                p.estimate, p.std_error = weights[p.name]
+            row = rows[p.name]
+            row.stage = "trajectory" if row.stage == "trajectory" else row.stage + " + joint"
+            if p.identifiable:
+                row.estimate, row.uncertainty, row.identifiable, row.note = p.estimate, p.std_error, True, ""
+            elif row.stage == "trajectory":
+                row.note = f"joint: {p.note}; start value kept"
             else:
-                notes.append("joint refinement did not lower the trajectory error: staged values kept")
-    after = _rms(problem.residuals_of(model))
-    return _finish(model, list(rows.values()), before, after, notes, runs, report_dir, say)
+                row.note = (row.note + "; " if row.note else "") + f"joint: {p.note}, staged value kept"
+    model = candidates[kept]
+    for row in rows.values():  # the rows tell the model returned, whatever it was built from
+        value = _start_value(model, row.name)
+        if not math.isnan(value) and not math.isclose(value, row.estimate, rel_tol=1e-12, abs_tol=0.0):
+            if row.stage != "trajectory":
+                row.note = (row.note + "; " if row.note else "") + (
+                    f"estimate {row.estimate:.6g} not kept: the {kept} model's value is the better on"
+                    " held-out windows"
+                )
+                row.uncertainty, row.identifiable = None, False
+            row.estimate = value
+    if inverse is not None:
+        inverse["trajectory"] = axis_figures(model, trajectory_runs)
+    result = _finish(model, list(rows.values()), cost["start"], cost[kept], notes, runs, report_dir, say)
+    result.held_out = {"every": HOLDOUT_EVERY, "errors": held, "kept": kept}
+    result.inverse_model = inverse
+    return result
+
+
+def _combination(rows: dict[str, ParameterRow], refined: TrajectoryFit) -> dict[str, tuple[float, float]]:
+    """Inverse-variance means of a staged and a joint estimate of the same parameter (value, 1σ).
+
+    They come from different data (a stage's own experiment; the trajectories), so their errors are
+    close to independent: a breakaway level bracketed within 0.3 % by its stage should not be moved 5 %
+    by trajectories that see it to 2 %."""
+    out = {}
+    for p in refined.parameters:
+        row = rows.get(p.name)
+        if row is None or not p.identifiable or p.std_error is None or row.uncertainty is None:
+            continue
+        if row.stage == "trajectory" or not (row.uncertainty > 0 and p.std_error > 0):
+            continue
+        w_s, w_j = row.uncertainty**-2, p.std_error**-2
+        out[p.name] = ((w_s * row.estimate + w_j * p.estimate) / (w_s + w_j), (w_s + w_j) ** -0.5)
+    return out
+
+
+def _combined(rows: dict[str, ParameterRow], refined: TrajectoryFit) -> HarmonicDriveModel | None:
+    values = {name: value for name, (value, _) in _combination(rows, refined).items()}
+    if not values:
+        return None
+    try:
+        return with_values(refined.model, values, "staged and joint combined")
+    except UserInputError:
+        return None
+
+
+def _better_start(
+    seeded: HarmonicDriveModel, start: HarmonicDriveModel, runs: list[Run], notes: list[str]
+) -> HarmonicDriveModel:
+    """The inverse-model start if its trajectories are closer to the data than the start model's."""
+    problem = TrajectoryProblem(start, runs, [], JOINT_WINDOW_S, 1e-4)
+    mine, theirs = _rms(problem.residuals_of(start)), _rms(problem.residuals_of(seeded))
+    if theirs < mine:
+        notes.append(
+            f"trajectory fit starts from the inverse-model estimates (error {theirs:.4g} < {mine:.4g})"
+        )
+        return seeded
+    notes.append(
+        f"trajectory fit starts from the start model (inverse-model start: {theirs:.4g} ≥ {mine:.4g})"
+    )
+    return start
 
 
 def _start_value(model: HarmonicDriveModel, name: str) -> float:
@@ -145,6 +301,7 @@ def _finish(
     say: Progress,
 ) -> Identification:
     result = Identification(model, rows, before, after, notes=notes)
+    result.imported = [run.meta["import_map"] for run in runs if "import_map" in run.meta]
     if report_dir is not None:
         say("validation", 0.8)
         report_dir.mkdir(parents=True, exist_ok=True)

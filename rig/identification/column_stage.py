@@ -1,0 +1,262 @@
+"""Runs without experiment metadata: what their columns determine, and a starting point for them.
+
+A lab's file has no segment table, no experiment name, no rig constants: no stage of `staged` can
+read it. Its columns still say a lot:
+
+- the input (`u`, `i_cmd` or `tau_m`) says what drives the motor; with `u` and `i_a` together, the
+  motor stage's equation u = R·i_a + K_b·ω_m holds at every sample and gives R and K_b directly;
+- `theta_l` says whether the load side is seen: without it a flexible model's J_l, K_s and load
+  friction do not show in θ_m well enough to be told apart from the motor side's, and are held;
+- the motor torque, known from the input (K_m·i, or τ_m), against the filtered motion gives the plain
+  inverse-model least squares (`model.fit.inverse`): the axis' inertia and its Coulomb and viscous
+  friction, a starting point near the truth for an axis the start model knows nothing about.
+
+The trajectory least squares then refines the parameters `free_parameters` lists on shooting windows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from model.errors import UserInputError
+from model.fit.inverse import InverseFit, inverse_model_fit
+from model.fit.parameters import get_values, with_values
+from model.params import HarmonicDriveModel
+from model.run import Run
+
+LAW_FRICTION = {
+    "article": ["s3", "k_v", "static_factor"],
+    "coulomb_viscous": ["f_cm", "b_m", "f_sm"],
+    "stribeck": ["f_cm", "f_sm", "omega_sm", "b_m"],
+    "lugre": ["f_cm", "b_m"],
+    "dahl": ["f_cm", "b_m"],
+}
+"""Motor friction parameters a trajectory fit can move, per law: the level, its speed slope and the
+breakaway. Position-dependent terms (s1, s2, a_n, b_n) need the position-friction passes' coverage."""
+
+
+@dataclass
+class ColumnPlan:
+    """What the plain runs determine: free parameters for the trajectory fit, held ones with reasons."""
+
+    free: list[str]
+    held: dict[str, str]
+    start: HarmonicDriveModel  # the start model, with any closed-form estimates (R, K_b) put in
+    estimates: dict[str, tuple[float, float]] = field(default_factory=dict)  # closed-form value, 1σ
+    inverse: InverseFit | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def motor_torque(run: Run, model: HarmonicDriveModel) -> np.ndarray | None:
+    """T_m from the columns: τ_m, K_m·i_cmd, K_m·i_a; None from a voltage alone (it needs R, K_b)."""
+    column = run.input_column
+    if column == "tau_m":
+        return run["tau_m"]
+    if column == "i_cmd":
+        return model.motor.K_m * run["i_cmd"]
+    if "i_a" in run:
+        return model.motor.K_m * run["i_a"]
+    return None
+
+
+def _load_seen(runs: list[Run]) -> bool:
+    return all("theta_l" in run for run in runs)
+
+
+def free_parameters(runs: list[Run], model: HarmonicDriveModel) -> tuple[list[str], dict[str, str]]:
+    """The parameters the columns of `runs` let a trajectory fit move, and why each other one is held."""
+    held: dict[str, str] = {
+        "K_m": "the motor's torque constant scales every torque the data show: given (the start model's)",
+        "r": "the gear ratio is structural: given (the start model's)",
+    }
+    free = ["J_m"]
+    columns = {run.input_column for run in runs}
+    if "u" in columns and not all("i_a" in run for run in runs if run.input_column == "u"):
+        free += ["R", "K_b"]  # only the trajectories can tell them; the covariance says whether they do
+    elif "u" not in columns:
+        for name in ("R", "K_b"):
+            held[name] = f"the input is {'/'.join(sorted(c for c in columns if c))}, not a voltage: not seen"
+    law = model.motor_friction.motor_law
+    free += LAW_FRICTION[law]
+    if law == "article":
+        held["v_c"] = "absorbed by s3 and k_v (C·(1 + k_v(|ω| − v_c))): held"
+        held["b_m"] = "grows ∝ ω like C·k_v: held (MODEL.md note 3)"
+        for name in ("s1", "s2"):
+            held[name] = "the slow level over the stroke needs the position-friction passes: held"
+    if model.rigid:
+        held["J_l"] = "a rigid axis shows J_m + r²·J_l only: J_m carries the sum"
+        if model.load_friction is not None:
+            held["f_cl"] = "a rigid axis' load friction adds r·F_l to the motor's: inseparable, held"
+    elif not _load_seen(runs):
+        why = "no theta_l column: the load side is not seen apart from the motor's; held"
+        for name in ("J_l", "K_s", "D_s", "f_cl", "b_l"):
+            held[name] = why
+    else:
+        free += ["J_l", "K_s"]
+        if model.load_friction is not None and model.load_friction.load_law == "coulomb_viscous":
+            free += ["f_cl", "b_l"]
+    if model.kinematic_error is not None:
+        held["A"] = "the motion error needs the position-friction passes' slow constant speed: held"
+    present = get_values_or_none(model, free)
+    free = [n for n in free if n in present and n not in held]
+    return free, held
+
+
+def get_values_or_none(model: HarmonicDriveModel, names: list[str]) -> dict[str, float]:
+    out = {}
+    for name in names:
+        try:
+            out[name] = get_values(model, [name])[name]
+        except UserInputError:
+            continue
+    return out
+
+
+def _motor_constants(runs: list[Run]) -> tuple[dict[str, tuple[float, float]], str] | None:
+    """R, K_b by u = R·i_a + K_b·ω_m over every sample of the voltage runs that also log i_a."""
+    rows = [run for run in runs if run.input_column == "u" and "i_a" in run]
+    if not rows:
+        return None
+    i_a = np.concatenate([r["i_a"] for r in rows])
+    omega = np.concatenate([np.gradient(r["theta_m"], r.t) for r in rows])
+    u = np.concatenate([r["u"] for r in rows])
+    design = np.column_stack([i_a, omega])
+    beta, *_ = np.linalg.lstsq(design, u, rcond=None)
+    resid = u - design @ beta
+    cov = np.linalg.pinv(design.T @ design) * float(resid @ resid) / max(len(u) - 2, 1)
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    if not (beta[0] > 0 and beta[1] > 0):
+        return None
+    return {"R": (float(beta[0]), float(se[0])), "K_b": (float(beta[1]), float(se[1]))}, (
+        f"u = R·i_a + K_b·ω_m over {len(u)} samples of {len(rows)} run(s)"
+    )
+
+
+def inverse_start(runs: list[Run], model: HarmonicDriveModel) -> InverseFit | None:
+    """The plain inverse-model least squares on the motor axis of the runs whose torque is known."""
+    t, theta, torque = [], [], []
+    offset_s = 0.0
+    for run in runs:
+        motor = motor_torque(run, model)
+        if motor is None:
+            continue
+        net = motor - model.mechanics.r * run["tau_ext"] if "tau_ext" in run else motor
+        # Runs laid end to end with a gap of a second: the filter's transients stay within each.
+        t.append(run.t - run.t[0] + offset_s)
+        theta.append(run["theta_m"])
+        torque.append(net)
+        offset_s = t[-1][-1] + 1.0
+    if not t:
+        return None
+    try:
+        fits = [inverse_model_fit(ti, th, tq) for ti, th, tq in zip(t, theta, torque, strict=True)]
+    except UserInputError:
+        return None
+    if len(fits) == 1:
+        return fits[0]
+    weights = np.array([f.samples for f in fits], float)
+    mean = {
+        k: float(np.average([getattr(f, k) for f in fits], weights=weights))
+        for k in ("mass", "viscous", "coulomb", "offset")
+    }
+    return InverseFit(
+        mean["mass"],
+        mean["viscous"],
+        mean["coulomb"],
+        mean["offset"],
+        {k: min(f.std_errors[k] for f in fits) for k in fits[0].std_errors},
+        int(weights.sum()),
+        fits[0].cutoff_hz,
+    )
+
+
+def seeded_model(model: HarmonicDriveModel, fit: InverseFit) -> HarmonicDriveModel | None:
+    """The model with its inertia and motor friction set from an inverse-model fit (None if the fit is
+    not physical: a negative mass or friction)."""
+    if not (fit.mass > 0 and fit.coulomb > 0 and fit.viscous >= 0):
+        return None
+    r = model.mechanics.r
+    load = model.load_friction
+    load_coulomb = r * (load.f_cl or 0.0) if load is not None and model.rigid else 0.0
+    coulomb = fit.coulomb - load_coulomb
+    if coulomb <= 0:
+        return None
+    values: dict[str, float] = {}
+    if model.rigid:
+        j_l = model.mechanics.J_l
+        values["J_m"] = max(fit.mass - r * r * j_l, 0.5 * fit.mass)
+        if values["J_m"] + r * r * j_l != fit.mass:
+            values["J_l"] = (fit.mass - values["J_m"]) / (r * r)
+    else:
+        values["J_m"] = max(fit.mass - r * r * model.mechanics.J_l, 0.1 * fit.mass)
+    law = model.motor_friction.motor_law
+    mf = model.motor_friction
+    if law == "article":
+        v_c = mf.v_c or 0.0
+        s3 = coulomb + fit.viscous * v_c  # s3·(1 − k_v·v_c) = F_c and s3·k_v = F_v
+        values |= {"s3": s3, "k_v": fit.viscous / s3}
+    else:
+        values |= {"f_cm": coulomb, "b_m": fit.viscous}
+        if law in ("coulomb_viscous", "stribeck") and mf.f_sm is not None and mf.f_cm:
+            values["f_sm"] = coulomb * max(mf.f_sm / mf.f_cm, 1.0)
+    try:
+        return with_values(model, values, "inverse-model start")
+    except UserInputError:
+        return None
+
+
+def plan_for_plain_runs(runs: list[Run], model: HarmonicDriveModel) -> ColumnPlan:
+    """Free and held parameters, closed-form motor constants and the inverse-model fit for these runs."""
+    driven = [run for run in runs if run.input_column is not None]
+    if not driven:
+        raise UserInputError(
+            "fit: no run has an input column (u, i_cmd or tau_m), and none carries experiment metadata"
+        )
+    free, held = free_parameters(driven, model)
+    plan = ColumnPlan(free, held, model)
+    constants = _motor_constants(driven)
+    if constants is not None:
+        values, how = constants
+        good = {n: v for n, (v, se) in values.items() if math.isfinite(se) and se < 0.25 * v}
+        if good:
+            plan.start = with_values(model, good, "motor constants")
+            plan.estimates.update({n: values[n] for n in good})
+        plan.notes.append(f"motor: {how}")
+    plan.inverse = inverse_start(driven, plan.start)
+    if plan.inverse is not None:
+        inv = plan.inverse
+        plan.notes.append(
+            f"inverse model (torque = M·a + F_v·v + F_c·sgn v + offset, {inv.cutoff_hz:g} Hz zero-phase"
+            f" filter, {inv.samples} samples): M = {inv.mass:.4g}, F_v = {inv.viscous:.4g},"
+            f" F_c = {inv.coulomb:.4g}, offset = {inv.offset:.3g}"
+        )
+    return plan
+
+
+def axis_figures(model: HarmonicDriveModel, runs: list[Run]) -> dict[str, float]:
+    """The model seen as one axis, in the inverse model's terms: inertia at the motor, and the Coulomb
+    level and viscous slope of its steady friction (motor plus load seen through r), over the speeds
+    and positions of the runs."""
+    from model.plant import Plant
+
+    speeds = np.concatenate([np.abs(np.gradient(r["theta_m"], r.t)) for r in runs])
+    top = float(np.percentile(speeds, 95)) if speeds.size else 1.0
+    grid = np.linspace(0.2 * top, top, 9)
+    theta = np.concatenate([r["theta_m"] for r in runs])
+    theta = theta[:: max(1, len(theta) // 200)]
+    plant = Plant(model)
+    level = np.array([np.mean(plant.steady_friction(theta, np.full(theta.shape, w))) for w in grid])
+    slope, coulomb = np.polyfit(grid, level, 1)
+    r = model.mechanics.r
+    load = model.load_friction
+    if load is not None and load.load_law == "coulomb_viscous":
+        coulomb += r * (load.f_cl or 0.0)
+        slope += r * r * (load.b_l or 0.0)
+    return {
+        "mass": model.mechanics.J_m + r * r * model.mechanics.J_l,
+        "viscous": float(slope),
+        "coulomb": float(coulomb),
+    }
