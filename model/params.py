@@ -18,6 +18,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from model.errors import UserInputError, describe_validation_error
+from model.settings_file import read_settings
 
 N_FOURIER = 10
 """Harmonics of the periodic Coulomb part: a0..a10 (11 values) and b1..b10 (10 values)."""
@@ -387,20 +388,7 @@ def load_model(name_or_path: str | Path) -> HarmonicDriveModel:
         else:
             known = ", ".join(preset_names())
             raise ModelFileError(f"{name_or_path}: no such model file or preset (presets: {known})")
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ModelFileError(f"{path}: cannot read ({exc.strerror})") from None
-    try:
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as exc:
-        detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ModelFileError(
-            f"{path}: not valid {'JSON' if path.suffix == '.json' else 'YAML'}{at}: {detail}"
-        ) from None
-    return parse_model(data, str(path))
+    return parse_model(read_settings(path, "model", ModelFileError), str(path))
 
 
 def save_model(model: HarmonicDriveModel, path: str | Path) -> Path:

@@ -9,10 +9,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from model.errors import UserInputError, describe_validation_error
+from model.settings_file import read_settings
 
 RIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "rigs"
 
@@ -109,15 +109,10 @@ def load_rig_config(path_or_name: str | Path) -> RigConfig:
     path = Path(path_or_name)
     if not path.exists() and (RIG_DIR / f"{path_or_name}.yaml").exists():
         path = RIG_DIR / f"{path_or_name}.yaml"
-    try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
+    if not path.exists():
         known = ", ".join(sorted(p.stem for p in RIG_DIR.glob("*.yaml")))
-        raise RigConfigError(f"{path_or_name}: no such rig file (rigs in configs/rigs: {known})") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}" if mark is not None else ""
-        raise RigConfigError(f"{path}: not valid YAML{at}: {str(exc).splitlines()[0]}") from None
+        raise RigConfigError(f"{path_or_name}: no such rig file (rigs in configs/rigs: {known})")
+    data = read_settings(path, "rig", RigConfigError)
     if not isinstance(data, dict):
         raise RigConfigError(f"{path}: a rig file must be a mapping of settings")
     try:

@@ -120,6 +120,10 @@ class UnknownRunError(UserInputError):
     """No run with this id in the catalog."""
 
 
+class StoreError(UserInputError):
+    """The store's folder or catalog cannot be used (not writable, a damaged catalog): one line."""
+
+
 def default_home() -> Path:
     """The store's home folder: `$HDRIG_HOME` when set, else `~/.hdrig`."""
     env = os.environ.get("HDRIG_HOME")
@@ -279,7 +283,12 @@ class RunStore:
 
     def __init__(self, home: str | os.PathLike[str] | None = None) -> None:
         self.home = Path(home) if home is not None else default_home()
-        (self.home / "runs").mkdir(parents=True, exist_ok=True)
+        try:
+            (self.home / "runs").mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError(
+                f"{self.home}: cannot hold the run store ({exc.strerror}); set HDRIG_HOME to a writable folder"
+            ) from None
         self.catalog_path = self.home / "catalog.sqlite"
         with self._db() as db:
             db.execute("PRAGMA journal_mode=WAL")
@@ -290,11 +299,22 @@ class RunStore:
     @contextlib.contextmanager
     def _db(self) -> Iterator[sqlite3.Connection]:
         # One short connection per operation: writers, listers and the service may be different threads.
-        db = sqlite3.connect(self.catalog_path, timeout=30.0)
+        try:
+            db = sqlite3.connect(self.catalog_path, timeout=30.0)
+        except sqlite3.OperationalError as exc:
+            raise StoreError(f"{self.catalog_path}: cannot open the run catalog ({exc})") from None
         db.row_factory = sqlite3.Row
         try:
             with db:  # commits, or rolls back on an exception
                 yield db
+        except sqlite3.DatabaseError as exc:
+            if type(exc) is not sqlite3.DatabaseError:  # integrity, locking...: the caller's to handle
+                raise
+            # A damaged file: told as such; the runs' data stay in runs/<id>/ (Parquet, with their metadata).
+            raise StoreError(
+                f"{self.catalog_path}: the run catalog is damaged ({exc}); move it aside and the store"
+                " starts a new one (the runs' data files in runs/ are untouched)"
+            ) from None
         finally:
             db.close()
 

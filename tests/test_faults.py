@@ -324,3 +324,69 @@ def test_the_simulated_rig_takes_no_lock() -> None:
     first.close()
     second.close()
     assert first._lock is None and second._lock is None
+
+
+# ---- bad input: one line naming what and where, exit 2, never a traceback ---------------------------
+
+
+@pytest.fixture(scope="module")
+def bad_files(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("bad")
+    (folder / "latin1.yaml").write_bytes("name: Messstand Köln\n".encode("latin-1"))
+    (folder / "deep.json").write_text("[" * 3000 + "]" * 3000)
+    (folder / "deep.yaml").write_text("motor: " + "{a: " * 3000 + "1" + "}" * 3000 + "\n")
+    (folder / "aliases.yaml").write_text(
+        "a: &a [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]\n"
+        + "".join(f"{c}: &{c} [{', '.join(['*' + p] * 10)}]\n" for p, c in zip("abcdef", "bcdefg", strict=True))
+    )
+    (folder / "huge.yaml").write_text("# padding\n" * 200_000)
+    (folder / "a-folder.yaml").mkdir()
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (["model", "show", "{bad}/latin1.yaml"], "not UTF-8 text (byte 0xf6 at offset 17)"),
+        (["model", "show", "{bad}/deep.json"], "nested deeper than a model file is"),
+        (["model", "show", "{bad}/deep.yaml"], "nested deeper than a model file is"),
+        (["model", "show", "{bad}/aliases.yaml"], "more than 100000 values"),
+        (["model", "show", "{bad}/huge.yaml"], "too large for a model file"),
+        (["model", "show", "{bad}/a-folder.yaml"], "is a folder, not a model file"),
+        (["run", "pulse", "--rig", "{bad}/latin1.yaml"], "not UTF-8 text"),
+        (["run", "pulse", "--rig", "{bad}/deep.yaml"], "nested deeper than a rig file is"),
+        (["run", "pulse", "--rig", "{bad}/a-folder.yaml"], "is a folder, not a rig file"),
+        (["run", "pulse", "--rig", "sim", "--set", "hold_s=[1,"], "the value is not YAML"),
+        (["fit", "--data", "latest", "--model", "seed", "--out", "{bad}/no/such/m.yaml"], "does not exist"),
+    ],
+)
+def test_bad_input_is_one_line_naming_it(bad_files: Path, tmp_path: Path, args: list[str], says: str) -> None:
+    result = hdrig(tmp_path / "home", *(a.replace("{bad}", str(bad_files)) for a in args))
+    no_traceback(result.stderr)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.count("\n") == 1 and says in result.stderr, result.stderr
+
+
+def test_fit_on_an_aborted_run_is_refused_before_it_runs(tmp_path: Path) -> None:
+    home = tmp_path / "home"
+    aborted = hdrig(home, "run", "speed-sweep", "--rig", "sim", "-q", "--set", "tau_ext_nm=50", "--json")
+    assert aborted.returncode == 3, aborted.stderr
+    run_id = json.loads(aborted.stdout)["id"]
+    result = hdrig(home, "fit", "--data", run_id, "--model", "seed", "--out", str(tmp_path / "m.yaml"), "-q")
+    no_traceback(result.stderr)
+    assert result.returncode == 2 and f"run {run_id} is aborted: travel limit" in result.stderr
+
+
+def test_an_unusable_store_folder_or_a_damaged_catalog_is_one_line(tmp_path: Path) -> None:
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    result = hdrig(a_file, "runs", "list")
+    no_traceback(result.stderr)
+    assert result.returncode == 2 and "cannot hold the run store (Not a directory)" in result.stderr
+
+    home = tmp_path / "home"
+    home.mkdir()
+    (home / "catalog.sqlite").write_bytes(b"this is no SQLite file, a disk error wrote it" * 100)
+    result = hdrig(home, "runs", "list")
+    no_traceback(result.stderr)
+    assert result.returncode == 2 and "the run catalog is damaged (file is not a database)" in result.stderr

@@ -287,6 +287,28 @@ def _runs_for(data: Sequence[str], store: RunStore, mapping: Sequence[str] | Non
     return load_runs(list(data), store, parse_mapping(mapping))
 
 
+def _check_out(out: str | Path | None) -> None:
+    """Before an analysis runs: its `--out` file can be written where it is asked for."""
+    if out is not None and not Path(out).parent.is_dir():
+        raise UserInputError(f"--out {out}: the folder {Path(out).parent} does not exist")
+
+
+def _complete_only(runs: list[Run], store: RunStore, action: str) -> list[Run]:
+    """Runs of the store that did not end complete lack segments the staged estimates read: refused."""
+    for run in runs:
+        run_id = run.meta.get("run_id")
+        try:
+            entry = store.get(str(run_id)) if run_id else None
+        except UserInputError:  # a file from another store: its content is all there is to go by
+            entry = None
+        if entry is not None and entry["status"] != RunStatus.COMPLETE:
+            raise UserInputError(
+                f"{action}: run {run_id} is {entry['reason'] or entry['status']}: {action} reads complete runs"
+                " (an aborted or interrupted run lacks segments)"
+            )
+    return runs
+
+
 def fit(
     data: Sequence[str],
     model: str,
@@ -303,7 +325,8 @@ def fit(
     from rig.identification import identify, save_identified
 
     start = load_model(model)
-    runs = _runs_for(data, store, mapping)
+    _check_out(out)
+    runs = _complete_only(_runs_for(data, store, mapping), store, "fit")
     folder = _analysis_folder(store, "fit", analysis_id)
     report = Path(report_dir) if report_dir is not None else None
     result = identify(runs, start, joint=joint, report_dir=report, progress=progress)
@@ -330,6 +353,7 @@ def find_gaps(
     start = load_model(model)
     runs = _runs_for(data, store, mapping)
     folder = _analysis_folder(store, "gaps", analysis_id)
+    _check_out(out)
     model_out = Path(out) if out is not None else folder / MODEL_FILE
     result = workflow(runs, start, report_dir=report_dir, progress=progress, model_out=model_out)
     document = gaps_document(result, folder)
