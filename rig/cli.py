@@ -474,7 +474,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # The service sits above the rig (api imports rig.core): found by name, as the backends are.
     service = importlib.import_module(SERVICE_MODULE)
     if hasattr(signal, "SIGHUP") and threading.current_thread() is threading.main_thread():
-        # uvicorn shuts down gracefully on SIGTERM only (the lifespan quick-stops the rig): SIGHUP says the same.
+        # uvicorn shuts down gracefully on SIGTERM only (its lifespan quick-stops the rig): SIGHUP too.
         signal.signal(signal.SIGHUP, lambda *_: signal.raise_signal(signal.SIGTERM))
     uvicorn.run(service.create_app(config, store), host=args.host, port=args.port, log_level="warning")
     return 0

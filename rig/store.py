@@ -287,7 +287,8 @@ class RunStore:
             (self.home / "runs").mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise StoreError(
-                f"{self.home}: cannot hold the run store ({exc.strerror}); set HDRIG_HOME to a writable folder"
+                f"{self.home}: cannot hold the run store ({exc.strerror});"
+                " set HDRIG_HOME to a writable folder"
             ) from None
         self.catalog_path = self.home / "catalog.sqlite"
         with self._db() as db:

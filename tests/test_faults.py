@@ -33,7 +33,9 @@ from sim_backend.inprocess import SimRig
 REPO_ROOT = Path(__file__).resolve().parents[1]
 NODE = 1  # configs/rigs/virtual-can.yaml
 RPDO, NMT = 0x200 + NODE, 0x000  # RPDO 1 carries the controlword first (drivers.canopen_config.rpdo_layout)
-ENABLE_OPERATION = 0x000F  # CiA 402 controlword bits 0-3 all set: the only command under which the drive moves
+ENABLE_OPERATION = (
+    0x000F  # CiA 402 controlword bits 0-3 all set: the only command under which the drive moves
+)
 START_TIMEOUT_S = 60.0  # a loaded 2-core machine may take this long to start a run; never reached when well
 LOST_BOUND_S = 1.0  # the store's promise: a killed run loses at most a flush interval of samples
 
@@ -64,7 +66,7 @@ class _Recorder:
         monkeypatch.setattr(store, "_seal", sealed)
 
 
-class _LoopBug(Exception):
+class _LoopBugError(Exception):
     pass
 
 
@@ -79,9 +81,9 @@ def test_an_exception_mid_run_quick_stops_before_the_data_are_sealed(
     def on_block(run_id: str, block: Block) -> None:
         blocks.append(len(block["t"]))
         if len(blocks) == 3:  # mid-program, the drive enabled and moving
-            raise _LoopBug("a bug in a block consumer")
+            raise _LoopBugError("a bug in a block consumer")
 
-    with pytest.raises(_LoopBug):
+    with pytest.raises(_LoopBugError):
         run_experiment("speed-sweep", rig.config, store=store, rig=rig, hooks=RunHooks(on_block=on_block))
 
     assert recorder.order[:2] == ["quick_stop", "seal"], recorder.order
@@ -107,7 +109,12 @@ def realtime_rig_file(tmp_path: Path, name: str) -> Path:
 def hdrig(home: Path, *args: str) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "HDRIG_HOME": str(home)}
     return subprocess.run(
-        [sys.executable, "-m", "rig", *args], capture_output=True, text=True, cwd=REPO_ROOT, env=env, timeout=300
+        [sys.executable, "-m", "rig", *args],
+        capture_output=True,
+        text=True,
+        cwd=REPO_ROOT,
+        env=env,
+        timeout=300,
     )
 
 
@@ -181,7 +188,9 @@ def test_sigterm_and_sighup_quick_stop_the_drive_then_keep_the_run_aborted(
 
 def test_the_first_rows_reach_the_disk_long_before_the_flush_interval(tmp_path: Path) -> None:
     store = RunStore(tmp_path / "home")
-    writer = store.open_run("pulse", "sim", None, None, ["t", "u"], {}, flush_interval_s=60.0, background=True)
+    writer = store.open_run(
+        "pulse", "sim", None, None, ["t", "u"], {}, flush_interval_s=60.0, background=True
+    )
     writer.append({"t": np.arange(10) / 1000.0, "u": np.zeros(10)})
     # FIRST_FLUSH_S is 0.25 s; 10 s is a deadline for a loaded machine, still far below the 60 s interval.
     deadline = time.monotonic() + 10.0
@@ -337,7 +346,9 @@ def bad_files(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (folder / "deep.yaml").write_text("motor: " + "{a: " * 3000 + "1" + "}" * 3000 + "\n")
     (folder / "aliases.yaml").write_text(
         "a: &a [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]\n"
-        + "".join(f"{c}: &{c} [{', '.join(['*' + p] * 10)}]\n" for p, c in zip("abcdef", "bcdefg", strict=True))
+        + "".join(
+            f"{c}: &{c} [{', '.join(['*' + p] * 10)}]\n" for p, c in zip("abcdef", "bcdefg", strict=True)
+        )
     )
     (folder / "huge.yaml").write_text("# padding\n" * 200_000)
     (folder / "a-folder.yaml").mkdir()

@@ -303,8 +303,8 @@ def _complete_only(runs: list[Run], store: RunStore, action: str) -> list[Run]:
             entry = None
         if entry is not None and entry["status"] != RunStatus.COMPLETE:
             raise UserInputError(
-                f"{action}: run {run_id} is {entry['reason'] or entry['status']}: {action} reads complete runs"
-                " (an aborted or interrupted run lacks segments)"
+                f"{action}: run {run_id} is {entry['reason'] or entry['status']}:"
+                f" {action} reads complete runs (an aborted or interrupted run lacks segments)"
             )
     return runs
 
