@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from drivers.can_bus import BusSettings
 from drivers.cia402 import TARGET_OBJECT, OperationMode
+from drivers.drive_modes import TORQUE_OFFSET
 from drivers.pdo_layout import PDO_MAX_BITS, PdoEntry, PdoLayout, od_variable
 from model.errors import UserInputError, describe_validation_error
 from rig.config import RigConfig
@@ -352,14 +353,17 @@ def tpdo_layouts(od: ObjectDictionary) -> tuple[PdoLayout, PdoLayout]:
     return tpdo1, PdoLayout.of_objects(od, list(TPDO2_OBJECTS))
 
 
-def rpdo_layout(od: ObjectDictionary, mode: OperationMode) -> PdoLayout:
-    """RPDO 1 for a mode: controlword + the mode's target."""
+def rpdo_layout(od: ObjectDictionary, mode: OperationMode, torque_offset: bool = False) -> PdoLayout:
+    """RPDO 1 for a mode: controlword + the mode's target (+ the torque offset 0x60B2, for a model's
+    feed-forward: 16 + 32 + 16 bits in CSP)."""
     if mode not in TARGET_OBJECT:
         raise CanopenConfigError(f"{mode.name} takes no target every cycle: it is not driven here")
-    index, sub = TARGET_OBJECT[mode]
-    if not _has(od, index, sub):
-        raise CanopenConfigError(f"the EDS has no 0x{index:04X}:{sub:02X}, the target object of {mode.name}")
-    return PdoLayout.of_objects(od, [(0x6040, 0), (index, sub)])
+    objects = [(0x6040, 0), TARGET_OBJECT[mode], *([TORQUE_OFFSET] if torque_offset else [])]
+    for index, sub in objects[1:]:
+        if not _has(od, index, sub):
+            where = f"0x{index:04X}:{sub:02X}"
+            raise CanopenConfigError(f"the EDS has no {where}, needed in RPDO 1 for {mode.name}")
+    return PdoLayout.of_objects(od, objects)
 
 
 def _pdo_writes(
@@ -422,9 +426,12 @@ def boot_plan(
     return writes
 
 
-def mode_plan(od: ObjectDictionary, node_id: int, mode: OperationMode) -> list[SdoWrite]:
-    """What a mode change writes: RPDO 1 remapped to controlword + target, then the mode."""
-    writes = _pdo_writes(od, RPDO_COMM, RPDO_MAP, 0x200 + node_id, rpdo_layout(od, mode))
+def mode_plan(
+    od: ObjectDictionary, node_id: int, mode: OperationMode, torque_offset: bool = False
+) -> list[SdoWrite]:
+    """What a mode change writes: RPDO 1 remapped to controlword + target (+ 0x60B2), then the mode."""
+    layout = rpdo_layout(od, mode, torque_offset)
+    writes = _pdo_writes(od, RPDO_COMM, RPDO_MAP, 0x200 + node_id, layout)
     writes.append(SdoWrite(0x6060, 0, int(mode), f"mode of operation {mode.name}"))
     return writes
 

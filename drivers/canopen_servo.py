@@ -53,7 +53,7 @@ from drivers.cia402 import (
     command_towards,
     decode_statusword,
 )
-from drivers.drive_modes import DriveModes, ModeChoice, ModeUnavailableError
+from drivers.drive_modes import TORQUE_OFFSET, DriveModes, ModeChoice, ModeUnavailableError
 from drivers.pdo_layout import od_variable
 from model.errors import UserInputError
 from rig.config import RigConfig
@@ -147,6 +147,7 @@ class CanopenServo:
         self._heartbeat: PeriodicFrame | None = None
         self._guard: PeriodicFrame | None = None
         self._target_range = (0, 0)
+        self._offset_range = (0, 0)  # of 0x60B2, when RPDO 1 carries it
         self._integrated_rad = 0.0  # a velocity program played in a position mode: the position so far
         # Receive side, filled by the network's notifier thread.
         self._rx = threading.Condition()
@@ -239,13 +240,22 @@ class CanopenServo:
         except ModeUnavailableError as exc:
             raise DriveSettingError(f"node {self.settings.node_id}: {exc}") from None
 
+    def choose_feedforward(self) -> ModeChoice:
+        """The drive mode a position program with a model's torque runs in (`DriveModes.choose_feedforward`:
+        CSP with 0x60B2, else CST); DriveSettingError in one line naming what the drive lacks."""
+        try:
+            return self._modes().choose_feedforward()
+        except ModeUnavailableError as exc:
+            raise DriveSettingError(f"node {self.settings.node_id}: {exc}") from None
+
     def offer(self) -> str:
         """What the drive offers, in words (its modes and where that was read)."""
         return self._modes().offer()
 
-    def configure(self, mode: OperationMode | ControlMode) -> None:
-        """Switch to a program's mode (`choose`) or to a drive mode named directly: remap RPDO 1, set
-        0x6060, confirm it from 0x6061.
+    def configure(self, mode: OperationMode | ControlMode | ModeChoice) -> None:
+        """Switch to a program's mode (`choose`), a choice made before (`choose_feedforward`) or a drive
+        mode named directly: remap RPDO 1 (with 0x60B2 for a torque offset), set 0x6060, confirm it
+        from 0x6061.
 
         The drive must not be OPERATION ENABLED: disable it first (a remap while powered is refused).
         """
@@ -256,10 +266,12 @@ class CanopenServo:
             raise RuntimeError(f"node {node.id}: disable the drive before switching to {op_mode.name}")
         self._nmt(NMT_PRE_OPERATIONAL)
         self._started_t_s = None
-        self._write(mode_plan(self.od, self.settings.node_id, op_mode))
+        offset = choice.torque_offset
+        self._write(mode_plan(self.od, self.settings.node_id, op_mode, offset))
         tpdo1, tpdo2 = self._tpdo
-        self._plan = PdoPlan(rpdo_layout(self.od, op_mode), tpdo1, tpdo2, self.settings.node_id)
+        self._plan = PdoPlan(rpdo_layout(self.od, op_mode, offset), tpdo1, tpdo2, self.settings.node_id)
         self._target_range = declared_range(od_variable(self.od, *TARGET_OBJECT[op_mode]))
+        self._offset_range = declared_range(od_variable(self.od, *TORQUE_OFFSET)) if offset else (0, 0)
         self.mode, self.choice = op_mode, choice
         logger.info("node %d: %s", node.id, choice)
         self._start_node()
@@ -380,17 +392,25 @@ class CanopenServo:
 
     # --- the cycle --------------------------------------------------------------------------------
 
-    def cycle(self, target: float) -> Feedback:
+    def cycle(self, target: float, torque_offset_nm: float = 0.0) -> Feedback:
         """One control cycle: the target (SI, per mode) in RPDO 1, one SYNC, the answering TPDOs.
 
         CST: motor current [A] (sent as torque K_m·i in ‰ of rated torque); CSV/PV: motor speed
-        [rad/s]; CSP: motor angle [rad]. Paced to the period unless `pace` is off. Raises SyncTimeoutError
-        when the drive does not answer within `sync_timeout_s`.
+        [rad/s]; CSP: motor angle [rad]. `torque_offset_nm` goes in 0x60B2 (‰ of rated torque, within
+        its declared range) where the mode was configured with it, and must be 0 otherwise. Paced to
+        the period unless `pace` is off. Raises SyncTimeoutError when the drive does not answer within
+        `sync_timeout_s`.
         """
         self._plan_or_raise()
         if self._quick_stop_latched:
             return self._exchange(CONTROLWORD[Command.QUICK_STOP], self._hold_raw)
-        return self._exchange(self._controlword, self._target_raw(target))
+        offset_raw = 0
+        if torque_offset_nm:
+            if self.choice is None or not self.choice.torque_offset:
+                node = self.settings.node_id
+                raise RuntimeError(f"node {node}: a torque offset needs a mode configured with it")
+            offset_raw = _clamp(self._scaling().torque_permille(torque_offset_nm), self._offset_range)
+        return self._exchange(self._controlword, self._target_raw(target), offset_raw)
 
     def _target_raw(self, target: float) -> int:
         """The target in the drive's units, within the target object's declared range."""
@@ -445,18 +465,23 @@ class CanopenServo:
                 )
             last = feedback
 
-    def _exchange(self, controlword: int, target_raw: int) -> Feedback:
+    def _exchange(self, controlword: int, target_raw: int, offset_raw: int = 0) -> Feedback:
         with self._cycle_lock:
-            return self._exchange_locked(controlword, target_raw, pace=self.settings.pace)
+            return self._exchange_locked(controlword, target_raw, self.settings.pace, offset_raw)
 
-    def _exchange_locked(self, controlword: int, target_raw: int, pace: bool) -> Feedback:
+    def _exchange_locked(
+        self, controlword: int, target_raw: int, pace: bool, offset_raw: int = 0
+    ) -> Feedback:
+        """One RPDO 1 + SYNC and its answer. The torque offset (0 in walks and stops: the drive's own
+        loops alone) goes only where RPDO 1 maps it."""
         network, _node = self._connected()
         plan = self._plan_or_raise()
         if pace:
             self._wait_for_period()
         if self.mode == OperationMode.INTERPOLATED_POSITION and controlword & 0x0F == 0x0F:
             controlword |= CW_ENABLE_IP_BIT  # interpolation runs while enabled
-        payload = plan.rpdo.encode((controlword, target_raw))
+        values = (controlword, target_raw, offset_raw)[: len(plan.rpdo.entries)]
+        payload = plan.rpdo.encode(values)
         with self._rx:
             before = list(self._tpdo_counts)
         try:
@@ -663,7 +688,9 @@ class CanopenServo:
             raise RuntimeError(f"node {self.settings.node_id}: not booted: call boot() first")
         return self.modes
 
-    def _choice(self, mode: OperationMode | ControlMode) -> ModeChoice:
+    def _choice(self, mode: OperationMode | ControlMode | ModeChoice) -> ModeChoice:
+        if isinstance(mode, ModeChoice):
+            return mode
         if isinstance(mode, ControlMode):
             return self.choose(mode)
         program = PROGRAM_OF.get(mode)

@@ -13,6 +13,12 @@ first usable mode of its preference list:
 
 Profile position is not chosen: it takes a set-point per handshake (controlword bit 4, acknowledged
 by statusword bit 12), one every second SYNC at best, and plans its own trajectory between them.
+
+A position program with a model's feed-forward torque (`model.feedforward`) needs a way to add a torque
+every SYNC: cyclic synchronous position with the torque offset 0x60B2 mapped beside the target (the
+drive's own loops close, the host adds the torque), else cyclic synchronous torque with the position
+and speed loops closed on the host (`drivers.hardware_rig`). Cyclic synchronous velocity with 0x60B2 is
+not chosen: the twin's speed loop takes no offset, so that path could not be tested here.
 """
 
 from __future__ import annotations
@@ -53,6 +59,15 @@ WHY: Final[dict[tuple[ControlMode, OperationMode], str]] = {
     (ControlMode.POSITION, OperationMode.INTERPOLATED_POSITION): "no CSP: positions interpolated per SYNC",
 }
 
+TORQUE_OFFSET: Final = (0x60B2, 0)
+"""CiA 402 torque offset, ‰ of the motor rated torque (0x6076), added to the drive's torque demand."""
+FEEDFORWARD_WHY: Final[dict[OperationMode, str]] = {
+    OperationMode.CYCLIC_SYNC_POSITION: "the planned angle every SYNC, the model's torque in 0x60B2",
+    OperationMode.CYCLIC_SYNC_TORQUE: (
+        "no 0x60B2 mappable in CSP: the torque every SYNC, position and speed loops closed on the host"
+    ),
+}
+
 MODE_NAMES: Final[dict[OperationMode, str]] = {
     OperationMode.PROFILE_POSITION: "profile position",
     OperationMode.PROFILE_VELOCITY: "profile velocity",
@@ -75,6 +90,18 @@ class ModeChoice:
     program: ControlMode
     mode: OperationMode
     why: str
+    feedforward: bool = False
+    """The program carries a model's torque: 0x60B2 mapped in CSP, or the host's loops in CST."""
+
+    @property
+    def torque_offset(self) -> bool:
+        """RPDO 1 carries the torque offset 0x60B2 after the target."""
+        return self.feedforward and self.mode != OperationMode.CYCLIC_SYNC_TORQUE
+
+    @property
+    def host_position_loop(self) -> bool:
+        """A position program played as torques: the host closes the position and speed loops."""
+        return self.program == ControlMode.POSITION and self.mode == OperationMode.CYCLIC_SYNC_TORQUE
 
     @property
     def integrates_speed(self) -> bool:
@@ -82,7 +109,8 @@ class ModeChoice:
         return self.program == ControlMode.VELOCITY and self.mode in POSITION_MODES
 
     def __str__(self) -> str:
-        return f"{self.program} programs in {MODE_NAMES[self.mode]} (mode {int(self.mode)}): {self.why}"
+        what = f"{self.program} programs{' with feed-forward' if self.feedforward else ''}"
+        return f"{what} in {MODE_NAMES[self.mode]} (mode {int(self.mode)}): {self.why}"
 
 
 POSITION_MODES: Final = frozenset({OperationMode.CYCLIC_SYNC_POSITION, OperationMode.INTERPOLATED_POSITION})
@@ -100,6 +128,8 @@ class DriveModes:
     usable: frozenset[OperationMode]
     source: str
     """Where `supported` came from: the drive's 0x6502, the EDS default, or the target objects."""
+    torque_offset: bool = False
+    """The torque offset 0x60B2 is there and PDO-mappable."""
 
     @classmethod
     def of(cls, od: ObjectDictionary, read: ObjectReader | None = None) -> DriveModes:
@@ -117,7 +147,7 @@ class DriveModes:
         else:
             supported = frozenset(m for m, bit in SUPPORTED_MODE_BIT.items() if bits & bit)
         usable = frozenset(m for m in supported if m in TARGET_OBJECT and _mappable(od, *TARGET_OBJECT[m]))
-        return cls(supported, usable, source)
+        return cls(supported, usable, source, _mappable(od, *TORQUE_OFFSET))
 
     def choose(self, program: ControlMode) -> ModeChoice:
         """The best usable mode for `program`; ModeUnavailableError naming what the drive offers if none."""
@@ -125,6 +155,25 @@ class DriveModes:
             if mode in self.usable:
                 return ModeChoice(program, mode, WHY[(program, mode)])
         raise ModeUnavailableError(f"the drive has no mode for {program} programs: it offers {self.offer()}")
+
+    def choose_feedforward(self) -> ModeChoice:
+        """The mode a position program with a model's torque runs in: CSP with 0x60B2 mappable, else CST
+        (the host closes the loops); ModeUnavailableError naming what is missing if neither."""
+        csp, cst = OperationMode.CYCLIC_SYNC_POSITION, OperationMode.CYCLIC_SYNC_TORQUE
+        if csp in self.usable and self.torque_offset:
+            return ModeChoice(ControlMode.POSITION, csp, FEEDFORWARD_WHY[csp], feedforward=True)
+        if cst in self.usable:
+            return ModeChoice(ControlMode.POSITION, cst, FEEDFORWARD_WHY[cst], feedforward=True)
+        missing = [
+            *(["the torque offset 0x60B2 PDO-mappable"] if not self.torque_offset else []),
+            *(["cyclic synchronous position"] if csp not in self.usable else []),
+            "cyclic synchronous torque",
+        ]
+        raise ModeUnavailableError(
+            f"a feed-forward torque needs cyclic synchronous position with the torque offset 0x60B2"
+            f" PDO-mappable, or cyclic synchronous torque; the drive lacks {' and '.join(missing)}:"
+            f" it offers {self.offer()}"
+        )
 
     def offer(self) -> str:
         """What the drive offers, for a one-line refusal."""

@@ -29,6 +29,19 @@ voltage is refused (CiA 402 has no voltage mode). A mode change between segments
 configure → enable (the drive refuses a remap while powered); the cycles it takes are not recorded,
 so `t` jumps over them.
 
+Feed-forward (`Segment.feedforward`, a model's track: `model.feedforward`): the drive is sent the
+track's planned motor angle θ_cmd instead of the set-point, and the track's torque every cycle
+(`loop_torque_nm`). In CSP the torque goes in the torque offset 0x60B2 mapped beside the target, so
+the drive's own loops close around it. A drive without 0x60B2 mappable plays the segment in CST with
+the loops closed here (`rig.control`, the same compiled position P and velocity PI as the simulated
+drive, with the rig file's `control:` gains, which are the drive's loop gains for the simulated
+rigs: the same loop, moved to the host), fed by the position and velocity actual of the previous
+SYNC, so the host loop runs one cycle behind a drive's own. The rate feed-forward passes the filter
+the rig file's `sensors.velocity_filter_hz` says the speed measurement has, so an exact follower
+meets zero speed error. Switching a track on or off is a mode change (RPDO 1 gains or loses 0x60B2).
+`supports_feedforward` says whether the drive can do either; a segment with a track on a drive that
+cannot is refused in one line naming what it lacks.
+
 The rig does not touch the garbage collector, whose full collections would stall the loop for
 50-80 ms: that is a policy of the process that owns the loop (`rig.realtime.quiet_heap`).
 
@@ -57,9 +70,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from drivers.canopen_servo import TORQUE_MODES, CanopenServo, CanopenServoError, DriveSettingError, Feedback
 from drivers.cia402 import State
 from drivers.daq_protocol import STATUS_CAP_RANGE, STATUS_ENCODER_FAULT, DecoderStats
+from drivers.drive_modes import ModeChoice
 from drivers.serial_daq import DEFAULT_BAUDRATE, DaqError, SampleBlock, SerialDaq
 from model.errors import UserInputError, describe_validation_error
+from model.feedforward import FeedForwardTrack, loop_torque_nm
 from rig.config import RigConfig
+from rig.control import N_CONTROL_STATE, S_PREV_POSITION_REF, S_RATE, gains_vector, position_p, velocity_pi
 from rig.faults import DeviceFaultError
 from rig.interface import (
     SAMPLE_COLUMNS,
@@ -312,6 +328,13 @@ class HardwareRig(Rig):
         self._clock_thread: threading.Thread | None = None
         self.cycle_log: CycleLog | None = None
         self.daq_tally = DaqTally()
+        self.supports_feedforward = self._feedforward_refusal() is None
+        # The host's loops for a track in CST (rig.control's layout): gains, state, the rate filter.
+        self._host_gains = gains_vector(config.control)
+        self._host_state = np.zeros(N_CONTROL_STATE)
+        self._host_loop_fresh = True
+        filter_hz = config.sensors.velocity_filter_hz
+        self._rate_alpha = 1.0 - math.exp(-2 * math.pi * filter_hz * self.period_s) if filter_hz else 1.0
 
     @property
     def gear_ratio(self) -> float:
@@ -327,8 +350,13 @@ class HardwareRig(Rig):
                 f"rig {self.config.name!r}: segment {segment.label!r} commands the motor voltage, and a"
                 " CiA 402 drive has no voltage mode: use current, velocity or position"
             )
+        if segment.feedforward is not None:
+            refusal = self._feedforward_refusal()
+            if refusal is not None:
+                raise RigError(f"rig {self.config.name!r}: segment {segment.label!r}: {refusal}")
         super().check_segment(segment)
-        self.servo.choose(segment.mode)  # a mode the drive cannot play: refused before anything moves
+        if segment.feedforward is None:
+            self.servo.choose(segment.mode)  # a mode the drive cannot play: refused before anything moves
         if self._load is None and np.any(np.asarray(segment.tau_ext) != 0.0):
             raise RigError(
                 f"rig {self.config.name!r}: segment {segment.label!r} asks for a load torque τ_ext, and"
@@ -345,6 +373,14 @@ class HardwareRig(Rig):
                 raise ModeRefusedError(f"rig {self.config.name!r}: {exc}") from None
         return lines
 
+    def _feedforward_refusal(self) -> str | None:
+        """Why the drive cannot take a feed-forward torque (one line), None when it can."""
+        try:
+            self.servo.choose_feedforward()
+        except DriveSettingError as exc:
+            return str(exc)
+        return None
+
     def record_raw_to(self, run_dir: Path) -> None:
         self.servo.record_to(run_dir / RAW_CAN_LOG)
 
@@ -352,6 +388,7 @@ class HardwareRig(Rig):
 
     def _enable(self) -> None:
         self._pending_error = None
+        self._host_loop_fresh = True
         self._start_daq()
         if self.servo.mode is None:
             self.servo.configure(ControlMode.VELOCITY)  # holds still until a segment says otherwise
@@ -401,12 +438,18 @@ class HardwareRig(Rig):
 
     # --- the cycle --------------------------------------------------------------------------------
 
-    def _run_cycles(self, mode: ControlMode, setpoint: np.ndarray, tau_ext: np.ndarray) -> tuple[Block, int]:
+    def _run_cycles(
+        self,
+        mode: ControlMode,
+        setpoint: np.ndarray,
+        tau_ext: np.ndarray,
+        feedforward: FeedForwardTrack | None = None,
+    ) -> tuple[Block, int]:
         self._raise_pending()
         self._cycling = threading.current_thread()
         try:
-            self._enter_mode(mode)
-            rows, t_sync, code = self._cycle_through(setpoint, tau_ext)
+            self._enter_mode(mode, feedforward is not None)
+            rows, t_sync, code = self._cycle_through(setpoint, tau_ext, feedforward)
             self._fill_theta_l(rows, t_sync)
         except DeviceFaultError as exc:
             self._quick_stop()
@@ -422,18 +465,27 @@ class HardwareRig(Rig):
             self.t_s = float(rows[-1, _COLUMN["t"]]) + self.period_s
         return {name: rows[:, i] for i, name in enumerate(SAMPLE_COLUMNS)}, code
 
-    def _enter_mode(self, mode: ControlMode) -> None:
-        """Configure the drive for `mode` if it plays another program now: disable, remap, enable."""
+    def _enter_mode(self, mode: ControlMode, feedforward: bool = False) -> None:
+        """Configure the drive for `mode` (with a track: `choose_feedforward`) if it plays another
+        program now: disable, remap, enable."""
         if mode == ControlMode.VOLTAGE:
             raise RigError(f"rig {self.config.name!r}: a CiA 402 drive has no {mode} mode")
-        if self.servo.choice is not None and self.servo.choice == self.servo.choose(mode):
+        choice: ModeChoice = self.servo.choose_feedforward() if feedforward else self.servo.choose(mode)
+        if self.servo.choice is not None and self.servo.choice == choice:
             return
         self.servo.disable()
-        self.servo.configure(mode)
+        self.servo.configure(choice)
         self.servo.enable()
+        self._host_loop_fresh = True
 
-    def _cycle_through(self, setpoint: np.ndarray, tau_ext: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        """One servo cycle per set-point; rows (θ_l still unset), SYNC host times, abort code."""
+    def _cycle_through(
+        self, setpoint: np.ndarray, tau_ext: np.ndarray, feedforward: FeedForwardTrack | None = None
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """One servo cycle per set-point; rows (θ_l still unset), SYNC host times, abort code.
+
+        With a track, the drive is sent its planned angle and torque (`_feedforward_target`); the
+        recorded set-point and the envelope's position error stay the segment's own.
+        """
         n = setpoint.shape[0]
         rows = np.empty((n, len(SAMPLE_COLUMNS)))
         t_sync = np.empty(n)
@@ -452,7 +504,10 @@ class HardwareRig(Rig):
             if self._load is not None:
                 self._load(load)
             try:
-                feedback = self.servo.cycle(target)
+                sent, offset_nm = (
+                    (target, 0.0) if feedforward is None else self._feedforward_target(feedforward, k)
+                )
+                feedback = self.servo.cycle(sent, offset_nm)
             except CanopenServoError as exc:  # silent drive, lost bus: stop, keep the rows so far
                 self._defer(f"drive lost: {exc}")
                 break
@@ -465,7 +520,7 @@ class HardwareRig(Rig):
                 else feedback.t_s - self._epoch_s
             )
             row[_COLUMN["u"]] = u
-            row[_COLUMN["i_cmd"]] = target if current_mode else i_a
+            row[_COLUMN["i_cmd"]] = sent if current_mode else i_a
             row[_COLUMN["tau_ext"]] = load
             row[_COLUMN["theta_m"]] = theta_m
             row[_COLUMN["omega_m"]] = omega_m
@@ -489,6 +544,37 @@ class HardwareRig(Rig):
                 self._defer(f"drive left OPERATION ENABLED: {feedback.state} ({faults})")
                 break
         return rows[:done], t_sync[:done], code
+
+    def _feedforward_target(self, track: FeedForwardTrack, k: int) -> tuple[float, float]:
+        """Cycle k of a track: (the servo's target, the torque offset [N·m]).
+
+        CSP with 0x60B2: the planned angle and the track's torque. CST: the current of the host's
+        position P and velocity PI (rig.control) around the planned angle, the torque added as the
+        velocity loop's offset, as the simulated drive adds it, and no separate offset.
+        """
+        last = self.servo.last_feedback
+        assert last is not None  # enable() has had its answers
+        omega_rad_s = last.velocity_rad_s
+        torque_nm = loop_torque_nm(track.rows, k, track.measured_band_rad_s, omega_rad_s)
+        theta_cmd = float(track.theta_cmd_rad[k])
+        choice = self.servo.choice
+        if choice is None or not choice.host_position_loop:
+            return theta_cmd, torque_nm
+        state, gains = self._host_state, self._host_gains
+        if self._host_loop_fresh:  # as a drive does on enable: loops cleared, the rate from the plan
+            state[:] = 0.0
+            state[S_PREV_POSITION_REF] = theta_cmd
+            state[S_RATE] = 0.0
+            self._host_loop_fresh = False
+        # The answer is a cycle old: it is compared with the plan of its own cycle (angle and speed
+        # advanced by the plan's last step), or the loop would settle with the motor a cycle ahead.
+        theta_rad = last.position_rad + theta_cmd - state[S_PREV_POSITION_REF]
+        rate_before = state[S_RATE]
+        period = self.period_s
+        omega_ref = position_p(gains, state, theta_cmd, theta_rad, period, self._rate_alpha)
+        omega_rad_s += state[S_RATE] - rate_before
+        offset_a = torque_nm / self.constants.torque_constant_nm_per_a
+        return velocity_pi(gains, state, omega_ref, omega_rad_s, period, offset_a), 0.0
 
     def _defer(self, what: str) -> None:
         """Stop the drive now; the error ends the segment at the next call, after the rows so far (the

@@ -6,6 +6,11 @@ own EDS, `configs/eds/hdrig-sim-drive.eds`, or a vendor's), RPDOs applied and TP
 the CiA 402 state machine of `drivers.cia402`, EMCY and FAULT on overcurrent, following error and the
 other envelope limits, and on losing the host's heartbeat (0x1016).
 
+The torque offset 0x60B2 (‰ of 0x6076) is added to the torque demand in CST, and in CSP while a master
+maps it into an RPDO: the position target and the offset then go to the simulated drive as a
+feed-forward track (`model.feedforward`), as the simulated rig's compensated segments do, whose
+velocity loop takes it as a current offset. (In CSV the simulated drive's speed loop takes none.)
+
 What canopen 2.4's `LocalNode` leaves to us is done here: it neither copies RPDO data into its object
 dictionary nor sends TPDOs on SYNC, and it does not watch heartbeats.
 
@@ -64,7 +69,9 @@ from drivers.cia402 import (
     next_state,
     statusword_for,
 )
+from drivers.drive_modes import TORQUE_OFFSET
 from drivers.pdo_layout import PdoEntry, PdoLayout, od_variable
+from model.feedforward import FF_THETA, FF_TORQUE, N_FF_COLUMNS, FeedForwardTrack
 from model.params import HarmonicDriveModel
 from model.plant import Plant
 from rig.config import RigConfig
@@ -161,6 +168,7 @@ class Cia402Twin:
         self._rpdos: dict[int, _Pdo] = {}
         self._tpdos: list[_Pdo] = []
         self._pdos_stale = True
+        self._offset_mapped = False  # a master drives 0x60B2 through an RPDO
         self._pending: dict[int, bytes] = {}
         self._tpdo_sent: dict[int, bytes] = {}
         self._sync_count = 0
@@ -240,7 +248,7 @@ class Cia402Twin:
         self.rated_current_a = rated_ma / 1000.0
         self.rated_torque_nm = self.model.motor.K_m * self.rated_current_a
         self._store(0x6076, 0, round(self.rated_torque_nm * 1000))
-        for index in (0x6040, 0x603F, 0x1001, 0x6060, 0x6061, 0x6064, 0x606C, 0x6071, 0x6077, 0x6078):
+        for index in (0x6040, 0x603F, 0x1001, 0x6060, 0x6061, 0x6064, 0x606C, 0x6071, 0x6077, 0x6078, 0x60B2):
             self._store(index, 0, 0)
         self._store(0x607A, 0, 0)
         self._store(0x60FF, 0, 0)
@@ -319,6 +327,9 @@ class Cia402Twin:
         for cob_id in self._rpdos:
             self.network.unsubscribe(cob_id, self._on_rpdo)
         self._rpdos = {p.cob_id: p for p in self._read_pdos(RPDO_COMM, RPDO_MAP)}
+        self._offset_mapped = any(
+            (e.index, e.subindex) == TORQUE_OFFSET for p in self._rpdos.values() for e in p.layout.entries
+        )
         for cob_id in self._rpdos:
             self.network.subscribe(cob_id, self._on_rpdo)
         self._tpdos = self._read_pdos(TPDO_COMM, TPDO_MAP)
@@ -402,10 +413,12 @@ class Cia402Twin:
         """Advance the plant n cycles in the current state and mode; a breach while powered faults."""
         powered = self.state in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
         mode, setpoint = self._command(n) if powered else (ControlMode.CURRENT, np.zeros(n))
+        track = self._offset_track(setpoint) if powered and mode == ControlMode.POSITION else None
         tau = np.full(n, self.tau_ext_nm)
         done = 0
         while done < n:
-            rows, code = self.drive.run(mode, setpoint[done:], tau[done:], self.t_s)
+            part = track.part(done, n) if track is not None else None
+            rows, code = self.drive.run(mode, setpoint[done:], tau[done:], self.t_s, part)
             done += rows.shape[0]
             self.t_s += rows.shape[0] * self.period_s
             self._remember(rows[-1])
@@ -415,7 +428,7 @@ class Cia402Twin:
                 self._fault(EMCY_FOR_ABORT[code])
                 if code == ABORT_FOLLOWING:
                     self._fault_bits |= SW_MODE_BIT13
-                mode, setpoint = ControlMode.CURRENT, np.zeros(n)
+                mode, setpoint, track = ControlMode.CURRENT, np.zeros(n), None
                 powered = False
         stopped = abs(self.last_sample["omega_m"]) < STANDSTILL_RAD_S
         if self.state == State.QUICK_STOP_ACTIVE and stopped and not 5 <= self._get_or(0x605A, 2) <= 8:
@@ -431,6 +444,8 @@ class Cia402Twin:
             permille = float(self._get_or(0x6071, 0))
             if mode == OperationMode.PROFILE_TORQUE:
                 permille = self._torque_ramp(permille, n)
+            else:
+                permille += self._get_or(0x60B2, 0)  # CST: the torque offset adds to the target
             limit = self._get_or(0x6072, _INT16)  # max torque, ‰
             permille = min(max(permille, -limit), limit)
             current = permille * self.rated_torque_nm / 1000.0 / self.model.motor.K_m
@@ -455,6 +470,15 @@ class Cia402Twin:
             target = self._velocity_target_rad_s(velocity_units)
             return ControlMode.VELOCITY, self._profile(n, target, velocity_units)
         return ControlMode.CURRENT, np.zeros(n)  # no mode, or one the drive lacks: no torque
+
+    def _offset_track(self, positions_rad: np.ndarray) -> FeedForwardTrack | None:
+        """CSP with 0x60B2 mapped: the targets and the offset torque as the simulated drive's track."""
+        if not self._offset_mapped or self._active_mode() != OperationMode.CYCLIC_SYNC_POSITION:
+            return None
+        rows = np.zeros((positions_rad.shape[0], N_FF_COLUMNS))
+        rows[:, FF_THETA] = positions_rad
+        rows[:, FF_TORQUE] = self._get_or(0x60B2, 0) * self.rated_torque_nm / 1000.0
+        return FeedForwardTrack(rows, label="0x60B2")
 
     def _torque_ramp(self, target_permille: float, n: int) -> float:
         """Profile torque: the torque reference moves to the target at the torque slope 0x6087 [‰/s]."""

@@ -235,5 +235,5 @@ def test_the_cycle_period_sets_the_simulated_time_per_sync(master: Master) -> No
 
 def test_mapping_an_object_that_is_not_mappable_is_refused(master: Master) -> None:
     with pytest.raises(canopen.SdoAbortedError) as info:
-        master.node.sdo[0x1A00][1].raw = 0x60760020  # motor rated torque: PDOMapping=0 in the EDS
+        master.node.sdo[0x1A00][1].raw = 0x60750020  # motor rated current: PDOMapping=0 in the EDS
     assert info.value.code == 0x06040041
