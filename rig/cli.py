@@ -9,8 +9,10 @@ to stderr.
 from __future__ import annotations
 
 import argparse
+import importlib
 import importlib.util
 import json
+import os
 import signal
 import sys
 import threading
@@ -20,15 +22,14 @@ from typing import TYPE_CHECKING, Any, NoReturn
 
 from model.errors import UserInputError
 from model.inputs import KINDS
-from model.params import PRESET_DIR, HarmonicDriveModel, load_model
+from model.params import HarmonicDriveModel, load_model, parse_model
 from rig.faults import DeviceFaultError
 from rig.status import RunStatus
 
 if TYPE_CHECKING:
     from rig.core import actions
     from rig.core.documents import RunDocument
-    from rig.core.worker import Job, RigWorker
-    from rig.progress import ProgressBar
+    from rig.lab import Lab
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -66,18 +67,45 @@ def _print_json(data: Any) -> None:
     sys.stdout.write("\n")
 
 
+# --- where the work is done: here, or on a service (hdrig --server URL) -------------------------------
+
+REMOTE_LAB_MODULE = "api.remote_lab"
+KEY_VARIABLE = "HDRIG_KEY"
+
+
+def _lab(args: argparse.Namespace) -> Lab:
+    """The core on this machine, or the service named by --server (`rig.lab`)."""
+    if not args.server:
+        from rig.lab import LocalLab
+
+        return LocalLab()
+    key = args.key or os.environ.get(KEY_VARIABLE)
+    if not key:
+        raise UserInputError(f"--server {args.server}: needs an API key: --key KEY or ${KEY_VARIABLE}")
+    # The service's package sits above the rig (api imports rig.core): found by name, as in cmd_serve.
+    remote = importlib.import_module(REMOTE_LAB_MODULE)
+    lab: Lab = remote.RemoteLab(args.server, key)
+    return lab
+
+
+def _here_only(args: argparse.Namespace) -> None:
+    if args.server:
+        raise UserInputError(f"hdrig {args.command} runs on this machine only: drop --server")
+
+
 # --- hdrig model ----------------------------------------------------------------------------------
 
 
 def cmd_model_list(args: argparse.Namespace) -> int:
-    rows = actions.list_models()
+    lab = _lab(args)
+    rows = lab.list_models()
     if args.json:
         _print_json([row.as_json() for row in rows])
         return 0
     width = max((len(r.name) for r in rows), default=4)
     for row in rows:
         print(f"{row.name:<{width}}  {row.description.split('. ')[0][:90]}")
-    _say(f"presets live in {PRESET_DIR}")
+    _say(f"presets live in {lab.presets_where}")
     return 0
 
 
@@ -97,10 +125,11 @@ def _describe(model: HarmonicDriveModel) -> list[str]:
 
 
 def cmd_model_show(args: argparse.Namespace) -> int:
+    document = _lab(args).show_model(args.model)
     if args.json:
-        _print_json(actions.show_model(args.model))
+        _print_json(document)
     else:
-        print("\n".join(_describe(load_model(args.model))))
+        print("\n".join(_describe(parse_model(document, args.model))))
     return 0
 
 
@@ -111,6 +140,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from model.simulate import replay, simulate_stream
     from rig.runfile import read_run, write_run, write_stream
 
+    _here_only(args)
     model = load_model(args.model)
     if args.input_file:
         source = read_run(args.input_file)
@@ -157,8 +187,8 @@ def _summary(run: RunDocument) -> str:
     return "  ".join(parts)
 
 
-def _print_params(name: str) -> None:
-    for info in actions.list_experiments():
+def _print_params(lab: Lab, name: str) -> None:
+    for info in lab.list_experiments():
         if name not in (CAMPAIGN, info.name):
             continue
         print(f"{info.name}: {info.summary}")
@@ -167,63 +197,30 @@ def _print_params(name: str) -> None:
             print(f"  {key:<24} {default!s:<28} {spec.get('description', '')}")
 
 
-def _follow(worker: RigWorker, job: Job, bar: ProgressBar, landed: Callable[[RunDocument], None]) -> None:
-    """Draw the job's progress and print each run as it lands, from the worker's events, until it ends."""
-    from rig.core.documents import RunDocument
-    from rig.core.events import EventKind
-
-    seen = 0
-    while True:
-        finished = job.done.is_set()  # read before the events, so none published before the end is missed
-        for event in worker.events.since(seen):
-            seen = event.id
-            if event.job_id != job.id:
-                continue
-            if event.kind == EventKind.PROGRESS:
-                bar(str(event.data["phase"]), float(event.data["fraction"]))
-            elif event.kind == EventKind.RUN and RunStatus(event.data["status"]).finished:
-                landed(RunDocument.model_validate(event.data))
-        if finished:
-            return
-        worker.events.wait(seen, timeout_s=0.5)
-
-
 def cmd_run(args: argparse.Namespace) -> int:
-    from rig.config import load_rig_config
-    from rig.core.worker import RigWorker
     from rig.progress import ProgressBar
-    from rig.realtime import quiet_heap
-    from rig.store import RunStore
 
     name: str = args.experiment
     if name != CAMPAIGN:
         actions.experiment_named(name)
+    lab = _lab(args)
     if args.params:
-        _print_params(name)
+        _print_params(lab, name)
         return 0
-    if args.rig is None:
-        raise UserInputError(f"run {name}: --rig RIG is required (a rig file, or a name in configs/rigs)")
-    config = load_rig_config(args.rig)
-    plan = actions.plan_run(name, actions.params_from_pairs(name, args.set), keep_going=args.keep_going)
+    params = actions.params_from_pairs(name, args.set)
     runs: list[RunDocument] = []
-    with ProgressBar(enabled=not args.quiet) as bar, RigWorker(config, RunStore()) as worker, quiet_heap():
+    with ProgressBar(enabled=not args.quiet) as bar:
 
         def landed(run: RunDocument) -> None:
             runs.append(run)
             if not args.json:
                 bar.write(_summary(run))
 
-        job = worker.submit(plan)
         try:
-            _follow(worker, job, bar, landed)
-        except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM/SIGHUP (StopSignal)
-            worker.quick_stop(str(stop) or "Ctrl-C")  # the motor first; the run then ends `aborted`, data kept
-            job.done.wait()
-            _follow(worker, job, bar, landed)
-            _say(f"hdrig: interrupted; quick stop; run {job.runs[-1] if job.runs else '-'} kept")
+            lab.run(name, params, args.rig, args.keep_going, bar, landed)
+        except KeyboardInterrupt as stop:  # the lab has stopped the motion and seen the run end
+            _say(f"hdrig: interrupted; quick stop; run {runs[-1].id if runs else '-'} kept")
             return _interrupted_status(stop)
-    if job.exception is not None and not (runs and isinstance(job.exception, DeviceFaultError)):
-        raise job.exception  # bad input found late, a fault before any run, or a bug (its traceback)
     if args.json:
         data = [run.as_json() for run in runs]
         _print_json(data if name == CAMPAIGN else data[0])
@@ -237,15 +234,13 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_runs_list(args: argparse.Namespace) -> int:
-    from rig.store import RunStore
-
-    store = RunStore()
-    runs = actions.list_runs(store)
+    lab = _lab(args)
+    runs = lab.list_runs()
     if args.json:
         _print_json([run.as_json() for run in runs])
         return 0
     if not runs:
-        _say(f"no runs in {store.home}")
+        _say(f"no runs in {lab.store_where}")
         return 0
     header = {"id": "id", "experiment": "experiment", "status": "status", "started": "started (UTC)"}
     rows = [
@@ -260,14 +255,12 @@ def cmd_runs_list(args: argparse.Namespace) -> int:
         if run is not None and run.analysis in ("interrupted", "failed"):
             reason += f"  analysis: {run.analysis}"
         print(f"{cells}  {samples:>8}{reason}")
-    _say(f"{len(runs)} run{'s' if len(runs) != 1 else ''} in {store.home}")
+    _say(f"{len(runs)} run{'s' if len(runs) != 1 else ''} in {lab.store_where}")
     return 0
 
 
 def cmd_runs_show(args: argparse.Namespace) -> int:
-    from rig.store import RunStore
-
-    run = actions.run_document(RunStore(), args.run)
+    run = _lab(args).run_document(args.run)
     if args.json:
         _print_json(run.as_json())
         return 0
@@ -299,6 +292,7 @@ def cmd_runs_show(args: argparse.Namespace) -> int:
 def cmd_runs_analyze(args: argparse.Namespace) -> int:
     from rig.store import RunStore
 
+    _here_only(args)
     run = actions.analyze_run(RunStore(), args.run)
     if args.json:
         _print_json(run.as_json())
@@ -308,9 +302,7 @@ def cmd_runs_analyze(args: argparse.Namespace) -> int:
 
 
 def cmd_runs_export(args: argparse.Namespace) -> int:
-    from rig.store import RunStore
-
-    path = actions.export_run(RunStore(), args.run, args.format, args.out)
+    path = _lab(args).export_run(args.run, args.format, args.out)
     _say(f"wrote run {args.run} to {path}")
     return 0
 
@@ -349,15 +341,13 @@ MAP_HELP = (
 
 
 def _analysis(args: argparse.Namespace, action: Callable[..., Any], **options: Any) -> Any:
-    """Run fit or gaps over the store with a progress bar; the action's document."""
+    """Run fit or gaps (a `Lab`'s) with a progress bar; the action's document."""
     from rig.progress import ProgressBar
-    from rig.store import RunStore
 
     with ProgressBar(enabled=not args.quiet) as bar:
         return action(
             args.data,
             args.model,
-            RunStore(),
             out=args.out,
             report_dir=args.report,
             progress=bar,
@@ -367,7 +357,7 @@ def _analysis(args: argparse.Namespace, action: Callable[..., Any], **options: A
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    result = _analysis(args, actions.fit, joint=not args.no_joint)
+    result = _analysis(args, _lab(args).fit, joint=not args.no_joint)
     if args.json:
         _print_json(result.as_json())
         return 0
@@ -384,7 +374,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_gaps(args: argparse.Namespace) -> int:
-    result = _analysis(args, actions.find_gaps)
+    result = _analysis(args, _lab(args).find_gaps)
     if args.json:
         _print_json(result.as_json())
         return 0
@@ -406,6 +396,7 @@ def cmd_keys_create(args: argparse.Namespace) -> int:
     from rig.core import access
     from rig.store import RunStore
 
+    _here_only(args)
     print(access.create_key(RunStore(), args.role, args.name))  # the key alone: scripts read stdout
     _say("hdrig: the key is shown only this once; it is stored hashed")
     return 0
@@ -415,6 +406,7 @@ def cmd_keys_list(args: argparse.Namespace) -> int:
     from rig.core import access
     from rig.store import RunStore
 
+    _here_only(args)
     keys = access.list_keys(RunStore())
     if args.json:
         _print_json([key.model_dump(mode="json") for key in keys])
@@ -429,6 +421,7 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
     from rig.core import access
     from rig.store import RunStore
 
+    _here_only(args)
     store = RunStore()
     access.revoke_key(store, args.name)
     access.audit(store, None, None, "key.revoke", args.name, "from the command line")
@@ -454,14 +447,13 @@ SERVICE_MODULE = "api.app"
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    import importlib
-
     import uvicorn
 
     from rig.config import load_rig_config
     from rig.core import access
     from rig.store import RunStore
 
+    _here_only(args)
     config = load_rig_config(args.rig)
     store = RunStore()
     host = "localhost" if args.host in ("127.0.0.1", "::1") else args.host
@@ -523,6 +515,15 @@ data are kept, the reason is on stderr; 130 interrupted (Ctrl-C: the rig quick-s
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="hdrig", description="Characterize harmonic-drive transmissions on a real or simulated rig."
+    )
+    parser.add_argument(
+        "--server",
+        metavar="URL",
+        help="run `model`, `run`, `runs`, `fit` and `gaps` on the hdrig service at URL"
+        " (http://127.0.0.1:8000) with the same output; --data and --model then name its runs and presets",
+    )
+    parser.add_argument(
+        "--key", metavar="KEY", help=f"the API key for --server (default: ${KEY_VARIABLE}; hdrig keys create)"
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

@@ -694,15 +694,7 @@ class RunStore:
         (`t` always comes too) or a time window t0 ≤ t ≤ t1 [s], only that selection is written (a
         download), not checked as a run.
         """
-        if fmt not in EXPORT_FORMATS:
-            raise UserInputError(f"unknown export format {fmt!r}; use one of {', '.join(EXPORT_FORMATS)}")
-        out = Path(out_path)
-        if out.is_dir():
-            out = out / f"{run_id}.{fmt}"
-        elif not out.suffix:
-            out = out.with_suffix(f".{fmt}")
-        elif out.suffix.lower() != f".{fmt}":
-            raise UserInputError(f"{out}: suffix {out.suffix!r} does not match the export format {fmt!r}")
+        out = export_path(run_id, fmt, out_path)
         self._refuse_own_files(out)
         with self._db() as db:
             row = self._row(db, run_id)
@@ -722,6 +714,21 @@ class RunStore:
         catalog = target.parent == home and target.name.startswith(self.catalog_path.name)
         if target.is_relative_to(home / "runs") or catalog:
             raise UserInputError(f"{path}: inside the run store's own files ({home}); export outside them")
+
+
+def export_path(run_id: str, fmt: str, out_path: str | os.PathLike[str]) -> Path:
+    """Where an export of a run goes: `out_path`, `<id>.<fmt>` inside it if a folder, `.<fmt>` added to a
+    bare name; a suffix that is not the format's is a one-line error."""
+    if fmt not in EXPORT_FORMATS:
+        raise UserInputError(f"unknown export format {fmt!r}; use one of {', '.join(EXPORT_FORMATS)}")
+    out = Path(out_path)
+    if out.is_dir():
+        out = out / f"{run_id}.{fmt}"
+    elif not out.suffix:
+        out = out.with_suffix(f".{fmt}")
+    elif out.suffix.lower() != f".{fmt}":
+        raise UserInputError(f"{out}: suffix {out.suffix!r} does not match the export format {fmt!r}")
+    return out
 
 
 def _may_hold(stats: Any, lo: float, hi: float) -> bool:

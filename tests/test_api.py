@@ -42,6 +42,7 @@ ROLE_OF_ROUTE: dict[tuple[str, str], str] = {
     ("POST", f"{API}/rig/reset"): "operator",
     ("GET", f"{API}/experiments"): "viewer",
     ("GET", f"{API}/models"): "viewer",
+    ("GET", f"{API}/models/{{name}}"): "viewer",
     ("POST", f"{API}/runs"): "operator",
     ("GET", f"{API}/runs"): "viewer",
     ("GET", f"{API}/runs/{{run_id}}"): "viewer",

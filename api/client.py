@@ -1,0 +1,346 @@
+"""A Python client of the REST service (`hdrig serve`), on httpx, for lab scripts and CI.
+
+    from api.client import HdrigClient
+
+    with HdrigClient("http://127.0.0.1:8000", key) as lab:
+        run = lab.start_run("speed-sweep", {"hold_s": 0.5})
+        run = lab.wait(run.id, timeout_s=120)  # follows the run's event stream to its end
+        lab.download(run.id, "csv", columns=["omega_m", "i_a"], out="sweep.csv")
+        fit = lab.fit([run.id], "seed")  # waits for the job; fit.result is `hdrig fit --json`'s document
+
+Answers are the core's documents (`rig.core.documents`), the same the command line prints with
+`--json`. An error answer (RFC 9457 problem+json) raises `ServiceError` with its status, title and
+detail; a 4xx raises `ServiceInputError`, which is also a `UserInputError`, so the command line's edge
+shows it as one line and exits 2. A service that cannot be reached raises `ServiceUnreachableError`
+naming the URL.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import httpx
+
+from model.errors import UserInputError
+from rig.core.documents import ExperimentInfo, JobDocument, JobStatus, ModelSummary, RunDocument
+from rig.status import RunStatus
+
+API = "/api/v1"
+TIMEOUT_S = 30.0  # one request's connect/read limit; a download or a stream reads in pieces within it
+STREAM_READ_S = 30.0  # the service sends a keep-alive every 10 s: a quiet stream longer than this is dead
+POLL_S = 0.25  # a job's document is polled this often (jobs have no stream of their own)
+Format = Literal["parquet", "csv", "mat"]
+
+
+class ServiceError(Exception):
+    """The service answered with an error (a problem+json document, or a bare HTTP error)."""
+
+    def __init__(
+        self,
+        status: int,
+        title: str,
+        detail: str,
+        body: dict[str, Any] | None = None,
+        retry_after_s: float | None = None,
+    ) -> None:
+        super().__init__(detail)
+        self.status, self.title, self.detail = status, title, detail
+        self.body = body or {}  # the whole problem document (`errors`: each bad field)
+        self.retry_after_s = retry_after_s  # 409 busy: when to ask again
+
+
+class ServiceInputError(ServiceError, UserInputError):
+    """A 4xx: the request was wrong (bad field, unknown run, no key, too low a role, rig busy)."""
+
+
+class ServiceUnreachableError(UserInputError):
+    """No service answers at the URL (refused, unknown host, timed out)."""
+
+
+@dataclass(frozen=True)
+class ServerEvent:
+    """One Server-Sent Event of a run's stream."""
+
+    id: int
+    kind: str  # state, progress, samples, alarm, run
+    data: dict[str, Any]
+
+
+def _raise_for(response: httpx.Response) -> None:
+    if response.is_success:
+        return
+    response.read()
+    try:
+        body = response.json()
+    except ValueError:
+        body = None
+    if isinstance(body, dict) and "detail" in body and isinstance(body["detail"], str):
+        title, detail = str(body.get("title", response.reason_phrase)), body["detail"]
+    else:
+        body = {}
+        title = response.reason_phrase or "Error"
+        detail = f"HTTP {response.status_code} {title} from {response.request.method} {response.request.url}"
+    retry = response.headers.get("retry-after")
+    kind = ServiceInputError if 400 <= response.status_code < 500 else ServiceError
+    raise kind(response.status_code, title, detail, body, float(retry) if retry else None)
+
+
+class HdrigClient:
+    """The service at `base_url` (`http://127.0.0.1:8000`), with an API key from `hdrig keys create`."""
+
+    def __init__(self, base_url: str, key: str | None, timeout_s: float = TIMEOUT_S) -> None:
+        self.base_url = base_url.rstrip("/")
+        headers = {"Authorization": f"Bearer {key}"} if key else {}
+        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout_s)
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> HdrigClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- transport --------------------------------------------------------------------------------
+
+    def _request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        try:
+            response = self._http.request(method, f"{API}{path}", **kwargs)
+        except httpx.TransportError as exc:
+            raise self._unreachable(exc) from None
+        _raise_for(response)
+        return response
+
+    def _unreachable(self, exc: httpx.TransportError) -> ServiceUnreachableError:
+        why = type(exc).__name__ if not str(exc) else str(exc)
+        return ServiceUnreachableError(f"no hdrig service answers at {self.base_url}: {why}")
+
+    def _get(self, path: str, **params: Any) -> Any:
+        return self._request("GET", path, params={k: v for k, v in params.items() if v is not None}).json()
+
+    def _post(self, path: str, body: dict[str, Any] | None = None) -> Any:
+        return self._request("POST", path, json=body).json()
+
+    # ---- the rig and what it offers ---------------------------------------------------------------
+
+    def health(self) -> dict[str, Any]:
+        """`{"status": "ok"}` (needs no key)."""
+        answer: dict[str, Any] = self._get("/health")
+        return answer
+
+    def rig(self) -> dict[str, Any]:
+        """The rig: name, backend, mode (sim/hardware), state, health, limits, the current run."""
+        answer: dict[str, Any] = self._get("/rig")
+        return answer
+
+    def experiments(self) -> list[ExperimentInfo]:
+        return [ExperimentInfo.model_validate(e) for e in self._get("/experiments")]
+
+    def models(self) -> list[ModelSummary]:
+        return [ModelSummary.model_validate(m) for m in self._get("/models")]
+
+    def model(self, name: str) -> dict[str, Any]:
+        """A preset as a model file's content (`hdrig model show NAME --json`)."""
+        answer: dict[str, Any] = self._get(f"/models/{name}")
+        return answer
+
+    def stop(self) -> dict[str, Any]:
+        """Stop everything now (the rig quick-stops, the queue is cancelled); always accepted."""
+        answer: dict[str, Any] = self._post("/rig/stop")
+        return answer
+
+    # ---- runs ---------------------------------------------------------------------------------------
+
+    def start_run(
+        self,
+        experiment: str,
+        params: dict[str, Any] | None = None,
+        queue: bool = False,
+        keep_going: bool = False,
+    ) -> RunDocument | JobDocument:
+        """Start an experiment: its run's document (status queued or running). The campaign answers
+        with its job's document. A busy rig raises ServiceInputError 409 unless `queue`."""
+        body = {"experiment": experiment, "params": params or {}, "queue": queue, "keep_going": keep_going}
+        answer = self._post("/runs", body)
+        if "kind" in answer:
+            return JobDocument.model_validate(answer)
+        return RunDocument.model_validate(answer)
+
+    def runs(self) -> list[RunDocument]:
+        return [RunDocument.model_validate(r) for r in self._get("/runs")]
+
+    def run(self, run_id: str) -> RunDocument:
+        return RunDocument.model_validate(self._get(f"/runs/{run_id}"))
+
+    def abort(self, run_id: str) -> RunDocument:
+        """Stop this run: the rig quick-stops; the data so far are kept and the run ends `aborted`."""
+        return RunDocument.model_validate(self._post(f"/runs/{run_id}/abort"))
+
+    def events(self, run_id: str, last_event_id: int | None = None) -> Iterator[ServerEvent]:
+        """The run's Server-Sent Events after `last_event_id`, until its final `run` event."""
+        headers = {"Last-Event-ID": str(last_event_id)} if last_event_id else {}
+        timeout = httpx.Timeout(TIMEOUT_S, read=STREAM_READ_S)
+        try:
+            with self._http.stream(
+                "GET", f"{API}/runs/{run_id}/events", headers=headers, timeout=timeout
+            ) as response:
+                _raise_for(response)
+                yield from _parse_sse(response.iter_lines())
+        except httpx.TransportError as exc:
+            raise self._unreachable(exc) from None
+
+    def wait(self, run_or_job_id: str, timeout_s: float | None = None) -> RunDocument | JobDocument:
+        """Block until the run (or job: fit, gaps, campaign) has ended; its final document.
+
+        A run is followed on its event stream; should the stream end early, by polling. A job is
+        polled. TimeoutError when it has not ended within `timeout_s`.
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        try:
+            run = self.run(run_or_job_id)
+        except ServiceInputError as exc:
+            if exc.status != 404:
+                raise
+            return self.wait_job(run_or_job_id, timeout_s)
+        if not run.status.finished:
+            for event in self._events_until(run.id, deadline):
+                if event.kind == "run" and RunStatus(event.data["status"]).finished:
+                    break
+        while not (run := self.run(run.id)).status.finished:  # the stream ended early: poll
+            _sleep_before(deadline, f"run {run.id} is still {run.status}")
+        return run
+
+    def _events_until(self, run_id: str, deadline: float | None) -> Iterator[ServerEvent]:
+        for event in self.events(run_id):
+            yield event
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"run {run_id} has not ended by the deadline")
+
+    def download(
+        self,
+        run_id: str,
+        format: Format = "parquet",
+        columns: Sequence[str] | None = None,
+        t0: float | None = None,
+        t1: float | None = None,
+        out: str | Path | None = None,
+    ) -> Path:
+        """Write the run's samples (optionally some columns, a time window [s]) to `out` (a file, or a
+        folder for `<id>.<format>`; default: that name in the current folder); the path written."""
+        params: dict[str, Any] = {"format": format, "t0": t0, "t1": t1}
+        if columns:
+            params["columns"] = ",".join(columns)
+        path = Path(out) if out is not None else Path.cwd()
+        if path.is_dir():
+            path = path / f"{run_id}.{format}"
+        self._save(f"/runs/{run_id}/data", path, {k: v for k, v in params.items() if v is not None})
+        return path
+
+    def _save(self, route: str, path: Path, params: dict[str, Any] | None = None) -> None:
+        part = path.with_name(path.name + ".part")
+        try:
+            with self._http.stream("GET", f"{API}{route}", params=params) as response:
+                _raise_for(response)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                with part.open("wb") as f:
+                    for piece in response.iter_bytes():
+                        f.write(piece)
+        except httpx.TransportError as exc:
+            part.unlink(missing_ok=True)
+            raise self._unreachable(exc) from None
+        part.replace(path)  # a file is there whole or not at all
+
+    def artifacts(self, run_id: str) -> list[str]:
+        """The run's artifacts (tables, results.json, plots), relative to its artifacts folder."""
+        files: list[str] = self._get(f"/runs/{run_id}/artifacts")["files"]
+        return files
+
+    def download_artifact(self, run_id: str, name: str, out: str | Path) -> Path:
+        path = Path(out)
+        self._save(f"/runs/{run_id}/artifacts/{name}", path)
+        return path
+
+    # ---- jobs: fits and gap analyses ----------------------------------------------------------------
+
+    def fit(
+        self, data: Sequence[str], model: str, wait: bool = True, timeout_s: float | None = None
+    ) -> JobDocument:
+        """A fit of `model` (a preset) to runs (ids, or `latest`). With `wait`, the finished job:
+        `.result` is `hdrig fit --json`'s document; `files("fits", id)` lists its model and report."""
+        job = JobDocument.model_validate(self._post("/fits", {"data": list(data), "model": model}))
+        return self.wait_job(job.id, timeout_s) if wait else job
+
+    def gaps(
+        self, data: Sequence[str], model: str, wait: bool = True, timeout_s: float | None = None
+    ) -> JobDocument:
+        """The model-gap workflow on runs; with `wait`, `.result` is `hdrig gaps --json`'s document."""
+        job = JobDocument.model_validate(self._post("/gaps", {"data": list(data), "model": model}))
+        return self.wait_job(job.id, timeout_s) if wait else job
+
+    def jobs(self) -> list[JobDocument]:
+        """Every job of this service's life: runs, campaigns, fits, gap analyses."""
+        return [JobDocument.model_validate(j) for j in self._get("/jobs")]
+
+    def job(self, job_id: str) -> JobDocument:
+        return JobDocument.model_validate(self._get(f"/jobs/{job_id}"))
+
+    def wait_job(self, job_id: str, timeout_s: float | None = None) -> JobDocument:
+        """Poll a job until it has ended (TimeoutError after `timeout_s`)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while not (job := self.job(job_id)).status.finished:
+            _sleep_before(deadline, f"job {job_id} is still {job.status}")
+        return job
+
+    def files(self, kind: Literal["fits", "gaps"], job_id: str) -> list[str]:
+        """A fit's or gap analysis' files (result.json, model.yaml, report/...), relative to its folder."""
+        files: list[str] = self._get(f"/{kind}/{job_id}/files")["files"]
+        return files
+
+    def download_file(self, kind: Literal["fits", "gaps"], job_id: str, name: str, out: str | Path) -> Path:
+        path = Path(out)
+        self._save(f"/{kind}/{job_id}/files/{name}", path)
+        return path
+
+
+def _sleep_before(deadline: float | None, what: str) -> None:
+    if deadline is not None and time.monotonic() + POLL_S > deadline:
+        raise TimeoutError(f"{what} at the deadline")
+    time.sleep(POLL_S)
+
+
+def _parse_sse(lines: Iterator[str]) -> Iterator[ServerEvent]:
+    """Server-Sent Events (the WHATWG format): `id:`, `event:`, `data:` lines, a blank line ends one;
+    `:` lines are comments (keep-alives)."""
+    event_id, kind, data = 0, "message", list[str]()
+    for line in lines:
+        if not line:
+            if data:
+                yield ServerEvent(event_id, kind, json.loads("\n".join(data)))
+            kind, data = "message", []
+            continue
+        if line.startswith(":"):
+            continue
+        name, _, value = line.partition(":")
+        value = value.removeprefix(" ")
+        if name == "id":
+            event_id = int(value)
+        elif name == "event":
+            kind = value
+        elif name == "data":
+            data.append(value)
+
+
+__all__ = [
+    "HdrigClient",
+    "JobStatus",
+    "ServerEvent",
+    "ServiceError",
+    "ServiceInputError",
+    "ServiceUnreachableError",
+]
