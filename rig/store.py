@@ -826,6 +826,8 @@ class RunWriter:
             self.appended += int(t.size)
         if self._flusher is None and monotonic() - self._last_flush_s >= self._interval_s():
             self.flush()
+        elif self._flusher is not None and self.samples == 0:
+            self._wake.set()  # the first rows go to disk at once, not an interval after the run opened
 
     def flush(self) -> None:
         """Write the buffered rows as a new part file and update the catalog's sample count."""
