@@ -32,7 +32,9 @@ mutated = st.tuples(st.integers(0, len(SEED_TEXT)), st.binary(max_size=64), st.i
 )
 yamlish = st.recursive(
     st.none() | st.booleans() | st.floats() | st.integers() | st.text(max_size=8),
-    lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4)
+    ),
     max_leaves=30,
 ).map(lambda doc: repr(doc).encode())
 
@@ -83,13 +85,26 @@ def test_the_daq_frame_decoder_takes_any_bytes_without_raising(chunks: list[byte
 
 
 WORDS = ["model", "show", "list", "simulate", "run", "runs", "export", "analyze", "fit", "gaps", "seed"]
-OPTIONS = ["--model", "--input", "--duration", "--rate", "--dt", "--out", "--set", "--format", "--data", "--json"]
+OPTIONS = [
+    "--model",
+    "--input",
+    "--duration",
+    "--rate",
+    "--dt",
+    "--out",
+    "--set",
+    "--format",
+    "--data",
+    "--json",
+]
 
 
 @FUZZ
 @given(
     argv=st.lists(
-        st.sampled_from(WORDS + OPTIONS) | st.text(max_size=12) | st.sampled_from(["1e309", "-1", "nan", "sine:"]),
+        st.sampled_from(WORDS + OPTIONS)
+        | st.text(max_size=12)
+        | st.sampled_from(["1e309", "-1", "nan", "sine:"]),
         max_size=6,
     )
 )
