@@ -171,7 +171,7 @@ class DriveModes:
         ]
         raise ModeUnavailableError(
             f"a feed-forward torque needs cyclic synchronous position with the torque offset 0x60B2"
-            f" PDO-mappable, or cyclic synchronous torque; the drive lacks {' and '.join(missing)}:"
+            f" PDO-mappable, or cyclic synchronous torque; the drive lacks {_listed(missing)}:"
             f" it offers {self.offer()}"
         )
 
@@ -192,6 +192,10 @@ class DriveModes:
             except ModeUnavailableError as exc:
                 return str(exc)
         return None
+
+
+def _listed(items: list[str]) -> str:
+    return " and ".join(items) if len(items) < 3 else f"{', '.join(items[:-1])} and {items[-1]}"
 
 
 def _has(od: ObjectDictionary, index: int, subindex: int = 0) -> bool:
