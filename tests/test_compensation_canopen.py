@@ -211,10 +211,11 @@ def test_without_0x60b2_the_track_runs_in_cst_with_the_loops_on_the_host(
     # The host's current command is what 0x6071 carries, to its ‰ resolution (0.151 mN·m / 0.0302 = 5 mA).
     np.testing.assert_allclose(torque_permille * RATED_TORQUE_NM / 1000 / 0.0302, i_cmd, atol=2.6e-3)
     theta_m = np.concatenate([b["theta_m"] for b in blocks])
-    # The host loop follows the planned angle: the CSP drive's own loop does to 2e-3 rad RMS on this
-    # sine (peak 63 rad/s); a host a cycle behind that did not account for it would lead by ω·T ≈ 0.04.
+    # The host loop follows the planned angle: measured 3.8e-3 rad RMS (deterministic: virtual time, seeded
+    # noise). A host loop that took its cycle-old answer for the present would settle a cycle ahead,
+    # ω·T ≈ 63/√2 rad/s × 1 ms = 4.4e-2 rad RMS; the line at 1e-2 lies between the two.
     error = theta_m[500:] - track.theta_cmd_rad[500:]
-    assert float(np.sqrt(np.mean(error**2))) < 5e-3
+    assert float(np.sqrt(np.mean(error**2))) < 1e-2
 
 
 # --- what it buys on virtual-can, with a model fitted on the simulated rig's campaign -----------------------
