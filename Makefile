@@ -51,6 +51,7 @@ bench: install
 	$(BIN)/python bench/bench_daq.py
 	$(BIN)/python bench/bench_canopen.py
 	$(BIN)/python bench/bench_gaps.py
+	$(BIN)/python bench/bench_service.py
 	$(BIN)/python bench/bench_endurance.py
 
 clean:
