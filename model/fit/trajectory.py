@@ -5,9 +5,16 @@ taken over short windows (multiple shooting): each window restarts the model fro
 and replays the measured input over it. The cost is the article's "Euclidean norm between simulated
 and measured values", per channel scaled by the data's own spread so that radians and rad/s weigh alike.
 
-Uncertainty: the Gauss–Newton covariance s²·(JᵀJ)⁻¹ at the optimum. A parameter whose column of the
-scaled Jacobian is (nearly) a combination of the others, or whose standard error exceeds its own size,
-is reported as not determined by the data, and keeps its starting value.
+Uncertainty: the Gauss–Newton covariance at the optimum, windows taken as independent clusters (the
+sandwich, `_window_robust_covariance`). A parameter whose column of the scaled Jacobian is (nearly) a
+combination of the others, or whose standard error exceeds its own size, is reported as not determined
+by the data, and keeps its starting value.
+
+Priors: estimates made elsewhere (the staged estimates, each from data made for it) can enter as extra
+residual rows λ·(θ − μ)/σ, so a value its own experiment pins down is not pulled away by trajectories
+that see it less well. λ puts a prior row on the scale of the trajectories' residual: λ = s·√c, with s
+the residual's RMS and c how much the window clustering inflates the white covariance, both measured at
+the optimum (`prior_weight`).
 """
 
 from __future__ import annotations
@@ -51,10 +58,15 @@ class ParameterEstimate:
 class TrajectoryFit:
     model: HarmonicDriveModel
     parameters: list[ParameterEstimate]
-    cost_before: float  # RMS of the scaled residual at the start
+    cost_before: float  # RMS of the scaled residual at the start (trajectory rows only)
     cost_after: float
     residuals: int
     notes: list[str] = field(default_factory=list)
+    prior_weight: float = 0.0  # λ of the prior rows at the optimum (0: no priors)
+
+
+Prior = tuple[float, float]
+"""An estimate made elsewhere: (value, 1σ)."""
 
 
 @dataclass
@@ -148,6 +160,19 @@ class TrajectoryProblem:
             raise UserInputError("no data long enough to fit on (windows of at least 3 samples)")
         # Work in units of each parameter's own starting size, so steps and bounds are comparable.
         self.x_scale = np.array([abs(v) if v != 0 else 1.0 for v in self.start.values()])
+        self.priors: dict[str, Prior] = {}
+        self.prior_weight = 0.0  # λ; 0 with priors: `fit_problem` measures it
+
+    def with_priors(self, priors: dict[str, Prior], weight: float = 0.0) -> TrajectoryProblem:
+        """The same problem with a prior row λ·(θ − μ)/σ for each free parameter given one (σ > 0)."""
+        other = copy.copy(self)
+        other.priors = {n: priors[n] for n in self.names if n in priors and priors[n][1] > 0}
+        other.prior_weight = weight
+        return other
+
+    def prior_rows(self, x: np.ndarray) -> np.ndarray:
+        values = self.values(x)
+        return np.array([self.prior_weight * (values[n] - mu) / sd for n, (mu, sd) in self.priors.items()])
 
     def values(self, x: np.ndarray) -> dict[str, float]:
         return {name: float(xi * s) for name, xi, s in zip(self.names, x, self.x_scale, strict=True)}
@@ -157,8 +182,8 @@ class TrajectoryProblem:
             model = with_values(self.model, self.values(x))
         except UserInputError:
             # Outside the model's valid region (e.g. a negative inertia): a large, smooth penalty.
-            return np.full(self.size, 1e3)
-        return self.residuals_of(model)
+            return np.full(self.size + len(self.priors), 1e3)
+        return np.concatenate([self.residuals_of(model), self.prior_rows(x)])
 
     def residuals_of(self, model: HarmonicDriveModel) -> np.ndarray:
         """The scaled residual of any model on these windows (the same scales, so costs compare)."""
@@ -190,11 +215,12 @@ class TrajectoryProblem:
         return train, test
 
     def for_parameters(self, model: HarmonicDriveModel, names: list[str]) -> TrajectoryProblem:
-        """The same windows and scales, with another base model and free parameters."""
+        """The same windows and scales, with another base model and free parameters (priors dropped)."""
         other = copy.copy(self)
         other.model, other.names = model, names
         other.start = get_values(model, names)
         other.x_scale = np.array([abs(v) if v != 0 else 1.0 for v in other.start.values()])
+        other.priors, other.prior_weight = {}, 0.0
         return other
 
 
@@ -213,14 +239,49 @@ def fit_trajectories(
 
 
 def fit_problem(problem: TrajectoryProblem, max_evaluations: int = 60) -> TrajectoryFit:
-    """Refine the problem's free parameters of its model on its windows; estimates with standard errors."""
-    r0 = problem.residuals(start_point(problem))
-    result, estimates = solve(problem, max_evaluations)
+    """Refine the problem's free parameters of its model on its windows; estimates with standard errors.
+
+    With priors and no λ given, λ is first guessed from the start's residual as if it were white, then
+    measured at the optimum; when the two differ by more than a quarter, the fit goes on from there with
+    the measured λ (a few evaluations: the optimum moves little)."""
+    r0 = problem.residuals_of(problem.model)
+    x0 = start_point(problem)
+    notes = []
+    if problem.priors and problem.prior_weight <= 0:
+        problem = problem.with_priors(problem.priors, _rms(r0))
+        result, estimates = solve(problem, max_evaluations, x0)
+        weight = prior_weight(problem, result.jac, result.fun)
+        if not 0.8 <= weight / problem.prior_weight <= 1.25:
+            notes.append(f"least_squares: {result.message} ({result.nfev} evaluations, λ guessed)")
+            problem = problem.with_priors(problem.priors, weight)
+            result, estimates = solve(problem, max(max_evaluations // 3, 10), result.x)
+    else:
+        result, estimates = solve(problem, max_evaluations, x0)
     final = {p.name: p.estimate for p in estimates}
     fitted = with_values(problem.model, final)
     x_final = np.array([final[n] for n in problem.names]) / problem.x_scale
-    notes = [f"least_squares: {result.message} ({result.nfev} evaluations)"]
-    return TrajectoryFit(fitted, estimates, _rms(r0), _rms(problem.residuals(x_final)), len(r0), notes)
+    notes.append(f"least_squares: {result.message} ({result.nfev} evaluations)")
+    if problem.priors:
+        notes.append(
+            f"priors on {', '.join(problem.priors)} (the staged estimates, each with its σ),"
+            f" weighed λ = {problem.prior_weight:.3g}"
+        )
+    after = _rms(problem.residuals(x_final)[: problem.size])
+    return TrajectoryFit(fitted, estimates, _rms(r0), after, len(r0), notes, problem.prior_weight)
+
+
+def prior_weight(problem: TrajectoryProblem, jac: np.ndarray, fun: np.ndarray) -> float:
+    """λ = s·√c at an optimum: the trajectory rows' RMS s, and c, the median over parameters of the
+    window-clustered variance over the white one (how many samples' worth one correlated window is).
+    Then a prior row carries the weight its σ gives it beside the trajectories' own information."""
+    m = problem.size
+    data_jac, data_fun = jac[:m], fun[:m]
+    s2 = float(data_fun @ data_fun) / max(m - jac.shape[1], 1)
+    white = np.diag(np.linalg.pinv(data_jac.T @ data_jac)) * s2
+    clustered = np.diag(_window_robust_covariance(data_jac, data_fun, problem.window_of_residual, s2))
+    ok = (white > 0) & np.isfinite(clustered) & (clustered > 0)
+    inflation = float(np.median(clustered[ok] / white[ok])) if np.any(ok) else 1.0
+    return math.sqrt(s2 * max(inflation, 1.0))
 
 
 def start_point(problem: TrajectoryProblem) -> np.ndarray:
@@ -233,7 +294,9 @@ def _lower_bounds(names: list[str]) -> np.ndarray:
     return np.array([-np.inf if SIGNED.fullmatch(n) else 0.0 for n in names])
 
 
-def solve(problem: TrajectoryProblem, max_evaluations: int) -> tuple[OptimizeResult, list[ParameterEstimate]]:
+def solve(
+    problem: TrajectoryProblem, max_evaluations: int, x0: np.ndarray | None = None
+) -> tuple[OptimizeResult, list[ParameterEstimate]]:
     """Bounded least squares on the problem's residual, then the estimates with their uncertainty.
 
     Friction makes the residual piecewise smooth in the parameters: a relative step of 1e-2 keeps
@@ -243,7 +306,7 @@ def solve(problem: TrajectoryProblem, max_evaluations: int) -> tuple[OptimizeRes
     names = problem.names
     result = least_squares(
         problem.residuals,
-        start_point(problem),
+        start_point(problem) if x0 is None else x0,
         bounds=(_lower_bounds(names), np.full(len(names), np.inf)),
         method="trf",
         diff_step=1e-2,
@@ -257,7 +320,14 @@ def _rms(residual: np.ndarray) -> float:
     return float(np.sqrt(np.mean(residual**2)))
 
 
-def _window_robust_covariance(jac: np.ndarray, fun: np.ndarray, groups: np.ndarray, s2: float) -> np.ndarray:
+def _window_robust_covariance(
+    jac: np.ndarray,
+    fun: np.ndarray,
+    groups: np.ndarray,
+    s2: float,
+    prior_jac: np.ndarray | None = None,
+    prior_variance: float = 0.0,
+) -> np.ndarray:
     """Covariance of the estimates, windows taken as independent clusters (the sandwich estimator).
 
     Within a window the residual is one smooth curve (it starts from a noisy measured state and the
@@ -265,23 +335,26 @@ def _window_robust_covariance(jac: np.ndarray, fun: np.ndarray, groups: np.ndarr
     times overconfident. Windows restart from the measurement, so they are nearly independent of each
     other: the sandwich (JᵀJ)⁻¹·Σ_w (J_wᵀr_w)(J_wᵀr_w)ᵀ·(JᵀJ)⁻¹, with the G/(G−1) small-sample factor.
     With fewer than 10 windows the sandwich is itself too noisy, and the white-residual form is kept.
+    Prior rows (`prior_jac`, each of variance λ²) add their information to the bread and to the meat.
     """
-    bread = np.linalg.pinv(jac.T @ jac)
+    n = jac.shape[1]
+    info = np.zeros((n, n)) if prior_jac is None else prior_jac.T @ prior_jac
+    bread = np.linalg.pinv(jac.T @ jac + info)
     count = int(groups.max()) + 1 if groups.size else 0
     if count < 10 or len(groups) != len(fun):
-        return bread * s2
-    scores = np.zeros((count, jac.shape[1]))
+        return bread @ (s2 * (jac.T @ jac) + prior_variance * info) @ bread
+    scores = np.zeros((count, n))
     np.add.at(scores, groups, jac * fun[:, None])
-    meat = scores.T @ scores * count / (count - 1)
+    meat = scores.T @ scores * count / (count - 1) + prior_variance * info
     return bread @ meat @ bread
 
 
 def _uncertainty(
     problem: TrajectoryProblem, x: np.ndarray, jac: np.ndarray, fun: np.ndarray
 ) -> list[ParameterEstimate]:
-    m, n = jac.shape
-    dof = max(m - n, 1)
-    s2 = float(fun @ fun) / dof
+    n = jac.shape[1]
+    m = len(fun) - len(problem.priors)  # trajectory rows; the prior rows follow them
+    s2 = float(fun[:m] @ fun[:m]) / max(m - n, 1)
     # Column-normalized Jacobian: its conditioning says which directions the data cannot see.
     norms = np.linalg.norm(jac, axis=0)
     blind = norms == 0
@@ -293,7 +366,9 @@ def _uncertainty(
         if is_weak:
             confounded |= np.abs(row) > 0.3
     try:
-        cov = _window_robust_covariance(jac, fun, problem.window_of_residual, s2)
+        cov = _window_robust_covariance(
+            jac[:m], fun[:m], problem.window_of_residual, s2, jac[m:], problem.prior_weight**2
+        )
         se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     except np.linalg.LinAlgError:
         se = np.full(n, math.inf)

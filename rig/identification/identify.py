@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 
 from model.errors import UserInputError
-from model.fit.parameters import get_values, with_values
-from model.fit.trajectory import TrajectoryFit, TrajectoryProblem, fit_problem
+from model.fit.parameters import get_values
+from model.fit.trajectory import TrajectoryProblem, fit_problem
 from model.params import HarmonicDriveModel, save_model
 from model.run import Run
 from rig.identification.column_stage import axis_figures, plan_for_plain_runs, seeded_model
@@ -80,7 +80,7 @@ def carries_stage_metadata(run: Run) -> bool:
 
 HOLDOUT_EVERY = 4
 """Every fourth shooting window is held out: the joint step fits on the others, and the model kept is
-the one best on these (start, staged, joint)."""
+the one best on these (start, staged, joint). The joint step carries the staged estimates as priors."""
 
 
 def identify(
@@ -167,7 +167,8 @@ def identify(
         say("joint refinement", 0.3)
         # From whichever of the two is closer on the training windows: the staged values can be worse.
         base = min(candidates, key=lambda label: _rms(residual[label][~is_held]))
-        refined = fit_problem(train.for_parameters(candidates[base], names))
+        priors = _priors(rows, names)
+        refined = fit_problem(train.for_parameters(candidates[base], names).with_priors(priors))
         notes += refined.notes + (
             [f"joint refinement started from the {base} model"] if base != "staged" else []
         )
@@ -181,31 +182,25 @@ def identify(
     if kept == "joint" and refined is not None:
         # Chosen on held-out windows; the values then use every window (a few breakaways more), kept only
         # if that does not lose what was won: never worse than the start or the staged model held out.
-        polished = fit_problem(problem.for_parameters(refined.model, names), max_evaluations=20)
+        polished = fit_problem(
+            problem.for_parameters(refined.model, names).with_priors(priors, refined.prior_weight),
+            max_evaluations=20,
+        )
         again = problem.residuals_of(polished.model)
         bar = min(held[label] for label in candidates if label != "joint")
         if _rms(again) <= cost["joint"] and _rms(again[is_held]) <= bar:
             refined, candidates["joint"] = polished, polished.model
             cost["joint"], held["joint"] = _rms(again), _rms(again[is_held])
             notes.append("joint refinement polished on every window after it won on the held-out ones")
-    combined = _combined(rows, refined) if refined is not None else None
-    if combined is not None:
-        candidates["combined"], residual["combined"] = combined, problem.residuals_of(combined)
-        cost["combined"], held["combined"] = _rms(residual["combined"]), _rms(residual["combined"][is_held])
-        fair = [label for label in candidates if cost[label] <= cost["start"]]
-        kept = min(fair, key=lambda label: held[label])
     verdicts = ", ".join(f"{label} {held[label]:.4g}" for label in candidates)
     notes.append(f"held-out windows (1 in {HOLDOUT_EVERY}): {verdicts}; kept the {kept} model")
-    if refined is not None and kept not in ("joint", "combined"):
+    if refined is not None and kept != "joint":
         notes.append(
             f"the joint refinement did not improve on the {kept} model on held-out windows"
             f" ({held['joint']:.4g} against {held[kept]:.4g}): {kept} values kept"
         )
-    if kept in ("joint", "combined") and refined is not None:
-        weights = _combination(rows, refined) if kept == "combined" else {}
+    if kept == "joint" and refined is not None:
         for p in refined.parameters:
-            if p.name in weights:
-                p.estimate, p.std_error = weights[p.name]
             row = rows[p.name]
             row.stage = "trajectory" if row.stage == "trajectory" else row.stage + " + joint"
             if p.identifiable:
@@ -233,32 +228,18 @@ def identify(
     return result
 
 
-def _combination(rows: dict[str, ParameterRow], refined: TrajectoryFit) -> dict[str, tuple[float, float]]:
-    """Inverse-variance means of a staged and a joint estimate of the same parameter (value, 1σ).
+def _priors(rows: dict[str, ParameterRow], names: list[str]) -> dict[str, tuple[float, float]]:
+    """The staged estimates of the joint parameters, each with its σ, as priors of the joint step.
 
-    They come from different data (a stage's own experiment; the trajectories), so their errors are
-    close to independent: a breakaway level bracketed within 0.3 % by its stage should not be moved 5 %
-    by trajectories that see it to 2 %."""
+    They come from data made for them (a stage's own experiment), so their errors are close to
+    independent of the trajectories': a breakaway level bracketed within 0.3 % by its stage should not
+    be moved 5 % by trajectories that see it to 2 %. Values only the trajectories see get none."""
     out = {}
-    for p in refined.parameters:
-        row = rows.get(p.name)
-        if row is None or not p.identifiable or p.std_error is None or row.uncertainty is None:
-            continue
-        if row.stage == "trajectory" or not (row.uncertainty > 0 and p.std_error > 0):
-            continue
-        w_s, w_j = row.uncertainty**-2, p.std_error**-2
-        out[p.name] = ((w_s * row.estimate + w_j * p.estimate) / (w_s + w_j), (w_s + w_j) ** -0.5)
+    for name in names:
+        row = rows[name]
+        if row.stage != "trajectory" and row.uncertainty is not None and row.uncertainty > 0:
+            out[name] = (row.estimate, row.uncertainty)
     return out
-
-
-def _combined(rows: dict[str, ParameterRow], refined: TrajectoryFit) -> HarmonicDriveModel | None:
-    values = {name: value for name, (value, _) in _combination(rows, refined).items()}
-    if not values:
-        return None
-    try:
-        return with_values(refined.model, values, "staged and joint combined")
-    except UserInputError:
-        return None
 
 
 def _better_start(
