@@ -146,6 +146,8 @@ def _play(
 ) -> RunOutcome:
     config = rig.config
     rig.enable()
+    # A run's clock starts at its own first sample, also on a rig kept open across runs (the rig worker).
+    t_origin_s = rig.t_s
     columns = list(SAMPLE_COLUMNS)
     model = rig.model
     meta: dict[str, Any] = {
@@ -158,6 +160,7 @@ def _play(
         "gear_ratio": rig.gear_ratio,
         "torque_constant_nm_per_a": rig.torque_constant_nm_per_a,
         "rig_modes": modes,  # how the rig plays each kind of program, and why (a drive's chosen modes)
+        "rig_time_origin_s": t_origin_s,  # the rig clock at the run's t = 0
     }
     writer = store.open_run(
         experiment=experiment.name,
@@ -171,12 +174,12 @@ def _play(
     )
     if hooks.on_start is not None:
         hooks.on_start(writer.run_id)
-    sink = writer.append
-    if hooks.on_block is not None:
-        tap, run_id = hooks.on_block, writer.run_id
+    tap, run_id = hooks.on_block, writer.run_id
 
-        def sink(block: Block) -> None:
-            writer.append(block)
+    def sink(block: Block) -> None:
+        block = {**block, "t": block["t"] - t_origin_s}
+        writer.append(block)
+        if tap is not None:
             tap(run_id, block)
 
     rig.record_raw_to(writer.run_dir)

@@ -193,3 +193,16 @@ def test_a_new_reader_of_a_run_starts_at_its_job_not_in_earlier_rig_wide_events(
     assert start == before  # the job's own events (queued, then its state change to running) come next
     assert (first.kind, first.data["state"]) == (EventKind.STATE, "running")
     assert worker.events.start_of("queued-but-not-begun") == worker.events.last_id
+
+
+def test_each_run_on_a_rig_kept_open_has_its_own_clock_from_zero(store: RunStore) -> None:
+    plan = plan_run("speed-sweep", {"speeds_rad_s": [2.0]})
+    with RigWorker(sim_config(), store) as worker:
+        first = worker.wait(worker.submit(plan).id, WAIT_S)
+        second = worker.wait(worker.submit(plan).id, WAIT_S)
+    period_s = 1.0 / sim_config().sample_rate_hz
+    for job in (first, second):
+        t = store.read(job.id).t
+        assert t[0] == pytest.approx(0.0, abs=period_s)  # the first sample is the run's t = 0
+    # The rig's clock went on: the second run began where the first left it.
+    assert store.get(second.id)["meta"]["rig_time_origin_s"] >= len(store.read(first.id)) * period_s
