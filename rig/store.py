@@ -50,6 +50,7 @@ import pyarrow.parquet as pq
 
 from model.errors import UserInputError
 from model.run import Run, RunFormatError
+from rig.importmap import MAPPED_SUFFIXES, ColumnSource, read_mapped
 from rig.runfile import (
     READ_SUFFIXES,
     RunFileWriter,
@@ -58,7 +59,6 @@ from rig.runfile import (
     read_run,
     write_parquet,
 )
-from rig.importmap import MAPPED_SUFFIXES, ColumnSource, read_mapped
 from rig.status import RunStatus
 
 STORED_STATUSES = (RunStatus.RUNNING, RunStatus.COMPLETE, RunStatus.ABORTED, RunStatus.INTERRUPTED)
