@@ -512,6 +512,45 @@ data are kept, the reason is on stderr; 130 interrupted (Ctrl-C: the rig quick-s
 `aborted` with its data)."""
 
 
+Subcommands = Any  # argparse's _SubParsersAction, private in typeshed
+JSON_HELP = "one JSON document on stdout"
+DATA_HELP = "run ids in the store, run files, or `latest` (the newest complete run of each experiment)"
+
+
+def _command(
+    sub: Subcommands, name: str, handler: Handler, help: str, json: str | None = None, **kwargs: Any
+) -> argparse.ArgumentParser:
+    """A subcommand that `handler` runs; `json` is the help of its --json flag, when it has one."""
+    command: argparse.ArgumentParser = sub.add_parser(name, help=help, **kwargs)
+    if json is not None:
+        command.add_argument("--json", action="store_true", help=json)
+    command.set_defaults(handler=handler)
+    return command
+
+
+def _group(sub: Subcommands, name: str, help: str) -> Subcommands:
+    """A command made of actions (`hdrig runs list`, `hdrig keys create`...)."""
+    return sub.add_parser(name, help=help).add_subparsers(
+        dest=f"{name}_command", required=True, metavar="ACTION"
+    )
+
+
+def _run_id(command: argparse.ArgumentParser) -> None:
+    command.add_argument("run", metavar="RUN", help="run id (see hdrig runs list)")
+
+
+def _analysis_arguments(command: argparse.ArgumentParser, model_help: str) -> None:
+    """What fit and gaps both take: the runs, the model, a mapping for foreign files, no progress bar."""
+    command.add_argument("--data", required=True, nargs="+", metavar="RUN_OR_FILE", help=DATA_HELP)
+    command.add_argument("--model", required=True, metavar="M", help=model_help)
+    command.add_argument("--map", action="append", metavar="ENTRY_OR_FILE", help=MAP_HELP)
+    command.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+
+def _rig_argument(command: argparse.ArgumentParser) -> None:
+    command.add_argument("--rig", required=True, metavar="RIG", help="rig file, or a name in configs/rigs")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="hdrig", description="Characterize harmonic-drive transmissions on a real or simulated rig."
@@ -527,15 +566,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    model = sub.add_parser("model", help="list and show model presets and files")
-    model_sub = model.add_subparsers(dest="model_command", required=True, metavar="ACTION")
-    listing = model_sub.add_parser("list", help="list the presets in configs/models")
-    listing.add_argument("--json", action="store_true", help="one JSON document on stdout")
-    listing.set_defaults(handler=cmd_model_list)
-    show = model_sub.add_parser("show", help="print a model; --json prints a valid model file")
+    model = _group(sub, "model", "list and show model presets and files")
+    _command(model, "list", cmd_model_list, "list the presets in configs/models", json=JSON_HELP)
+    show = _command(
+        model,
+        "show",
+        cmd_model_show,
+        "print a model; --json prints a valid model file",
+        json="every parameter by its docs/MODEL.md name, as JSON",
+    )
     show.add_argument("model", metavar="NAME_OR_FILE", help="preset name (seed) or YAML/JSON model file")
-    show.add_argument("--json", action="store_true", help="every parameter by its MODEL.md name, as JSON")
-    show.set_defaults(handler=cmd_model_show)
 
     kinds = "; ".join(f"{name}: {kind.help}" for name, kind in KINDS.items())
     sim = sub.add_parser(
@@ -597,31 +637,28 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     run.set_defaults(handler=cmd_run)
 
-    runs = sub.add_parser("runs", help="the run catalog: list, show and export runs")
-    runs_sub = runs.add_subparsers(dest="runs_command", required=True, metavar="ACTION")
-    runs_list = runs_sub.add_parser("list", help="every run: id, experiment, status, started, samples")
-    runs_list.add_argument("--json", action="store_true", help="the catalog as a JSON list")
-    runs_list.set_defaults(handler=cmd_runs_list)
-    runs_show = runs_sub.add_parser("show", help="one run: catalog entry, metrics, artifacts")
-    runs_show.add_argument("run", metavar="RUN", help="run id (see hdrig runs list)")
-    runs_show.add_argument("--json", action="store_true", help="one JSON object")
-    runs_show.set_defaults(handler=cmd_runs_show)
-    analyze = runs_sub.add_parser(
-        "analyze", help="analyze a complete run again (tables, plots, metrics), e.g. after an interruption"
+    runs = _group(sub, "runs", "the run catalog: list, show, analyze and export runs")
+    listed = "every run: id, experiment, status, started, samples"
+    _command(runs, "list", cmd_runs_list, listed, json="the catalog as a JSON list")
+    shown = "one run: catalog entry, metrics, artifacts"
+    _run_id(_command(runs, "show", cmd_runs_show, shown, json="one JSON object"))
+    again = "analyze a complete run again (tables, plots, metrics), e.g. after an interruption"
+    _run_id(_command(runs, "analyze", cmd_runs_analyze, again, json="the run's document as one JSON object"))
+    export = _command(
+        runs, "export", cmd_runs_export, "write a run as CSV (+ .json metadata), Parquet or MAT"
     )
-    analyze.add_argument("run", metavar="RUN", help="run id (see hdrig runs list)")
-    analyze.add_argument("--json", action="store_true", help="the run's document as one JSON object")
-    analyze.set_defaults(handler=cmd_runs_analyze)
-    export = runs_sub.add_parser("export", help="write a run as CSV (+ .json metadata), Parquet or MAT")
-    export.add_argument("run", metavar="RUN", help="run id (see hdrig runs list)")
+    _run_id(export)
     export.add_argument("--format", required=True, choices=("csv", "parquet", "mat"), help="file format")
     export.add_argument(
         "--out", required=True, metavar="PATH", help="file to write, or a folder to write <RUN>.<format> in"
     )
-    export.set_defaults(handler=cmd_runs_export)
 
-    trend = sub.add_parser(
-        "trend", help="endurance checkpoints (friction, stiffness ±1σ) against time, for a run or a gear unit"
+    trend = _command(
+        sub,
+        "trend",
+        cmd_trend,
+        "endurance checkpoints (friction, stiffness ±1σ) against time, for a run or a gear unit",
+        json="the trend document as one JSON object",
     )
     which = trend.add_mutually_exclusive_group(required=True)
     which.add_argument("run", metavar="RUN", nargs="?", help="an endurance run's id")
@@ -629,49 +666,35 @@ def build_parser() -> argparse.ArgumentParser:
     trend.add_argument(
         "--plot", metavar="DIR", help="write friction_trend.png and stiffness_trend.png into DIR"
     )
-    trend.add_argument("--json", action="store_true", help="the trend document as one JSON object")
-    trend.set_defaults(handler=cmd_trend)
 
-    fit = sub.add_parser(
+    fit = _command(
+        sub,
         "fit",
-        help="identify the model's parameters from runs; write the fitted model file",
+        cmd_fit,
+        "identify the model's parameters from runs; write the fitted model file",
+        json=JSON_HELP,
         description="Staged estimates from each experiment's data (motor constants, stiffness, inertias,"
         " kinematic error, friction against position and velocity, breakaway), then every determined"
         " parameter refined together on the pulse/step/sine trajectories. Parameters the data cannot"
         " determine are reported as such and keep the starting model's value.",
     )
-    fit.add_argument(
-        "--data",
-        required=True,
-        nargs="+",
-        metavar="RUN_OR_FILE",
-        help="run ids in the store, run files, or `latest` (the newest complete run of each experiment)",
-    )
-    fit.add_argument("--model", required=True, metavar="M", help="starting model: preset name or file")
+    _analysis_arguments(fit, "starting model: preset name or file")
     fit.add_argument("--out", required=True, metavar="FILE", help="fitted model file to write (.yaml/.json)")
     fit.add_argument("--report", type=Path, metavar="DIR", help="validation table, plots and report.md")
     fit.add_argument("--no-joint", action="store_true", help="staged estimates only (no joint refinement)")
-    fit.add_argument("--json", action="store_true", help="one JSON document on stdout")
-    fit.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    fit.add_argument("--map", action="append", metavar="ENTRY_OR_FILE", help=MAP_HELP)
-    fit.set_defaults(handler=cmd_fit)
 
-    gaps = sub.add_parser(
+    gaps = _command(
+        sub,
         "gaps",
-        help="find where the model and the data disagree, name the missing effect, add it, show the gap",
+        cmd_gaps,
+        "find where the model and the data disagree, name the missing effect, add it, show the gap",
+        json="one JSON document on stdout (docs/INTERFACE.md)",
         description="The model-gap workflow: simulate the model on the data's own inputs over short windows"
         " restarted from the measured state, locate the disagreement, name the MODEL.md effect that explains"
         " it, add and fit it, and go on until nothing significant is left (an effect must shrink the gap on"
         " held-out windows by 1.25× with determined parameters).",
     )
-    gaps.add_argument(
-        "--data",
-        required=True,
-        nargs="+",
-        metavar="RUN_OR_FILE",
-        help="run ids in the store, run files, or `latest` (the newest complete run of each experiment)",
-    )
-    gaps.add_argument("--model", required=True, metavar="M", help="preset name or model file")
+    _analysis_arguments(gaps, "preset name or model file")
     gaps.add_argument("--report", metavar="DIR", help="write summary.md, plots and model.yaml into DIR")
     gaps.add_argument(
         "--out",
@@ -679,47 +702,39 @@ def build_parser() -> argparse.ArgumentParser:
         help="model file with the effects added (default: model.yaml in the analysis' folder,"
         " $HDRIG_HOME/analyses/<id>/)",
     )
-    gaps.add_argument("--json", action="store_true", help="one JSON document on stdout (CONTRACT.md)")
-    gaps.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    gaps.add_argument("--map", action="append", metavar="ENTRY_OR_FILE", help=MAP_HELP)
-    gaps.set_defaults(handler=cmd_gaps)
 
-    keys = sub.add_parser("keys", help="API keys of the service: create, list, revoke")
-    keys_sub = keys.add_subparsers(dest="keys_command", required=True, metavar="ACTION")
-    keys_create = keys_sub.add_parser("create", help="make a key; prints only the key (shown this once)")
-    keys_create.add_argument("--role", required=True, choices=["viewer", "operator", "admin"])
-    keys_create.add_argument("--name", help="the key's name in lists and the audit log (default: ROLE-N)")
-    keys_create.set_defaults(handler=cmd_keys_create)
-    keys_list = keys_sub.add_parser("list", help="every key: name, role, created, revoked")
-    keys_list.add_argument("--json", action="store_true", help="one JSON document on stdout")
-    keys_list.set_defaults(handler=cmd_keys_list)
-    keys_revoke = keys_sub.add_parser("revoke", help="revoke a key by name")
-    keys_revoke.add_argument("name", metavar="NAME")
-    keys_revoke.set_defaults(handler=cmd_keys_revoke)
+    keys = _group(sub, "keys", "API keys of the service: create, list, revoke")
+    created = _command(keys, "create", cmd_keys_create, "make a key; prints only the key (shown this once)")
+    created.add_argument("--role", required=True, choices=["viewer", "operator", "admin"])
+    created.add_argument("--name", help="the key's name in lists and the audit log (default: ROLE-N)")
+    _command(keys, "list", cmd_keys_list, "every key: name, role, created, revoked", json=JSON_HELP)
+    _command(keys, "revoke", cmd_keys_revoke, "revoke a key by name").add_argument("name", metavar="NAME")
 
-    serve = sub.add_parser(
+    serve = _command(
+        sub,
         "serve",
-        help="the REST service and browser page for one rig",
+        cmd_serve,
+        "the REST service and browser page for one rig",
         description="Serve one rig over HTTP (REST API under /api/v1, the page at /). On a store without"
         " keys an admin key is made and printed once on stderr.",
     )
-    serve.add_argument("--rig", required=True, metavar="RIG", help="rig file, or a name in configs/rigs")
+    _rig_argument(serve)
     serve.add_argument(
         "--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)"
     )
     serve.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
-    serve.set_defaults(handler=cmd_serve)
 
-    twin = sub.add_parser(
+    twin = _command(
+        sub,
         "twin",
-        help="run a virtual-can rig's drive and DAQ twins standalone, for a CANopen master elsewhere",
+        cmd_twin,
+        "run a virtual-can rig's drive and DAQ twins standalone, for a CANopen master elsewhere",
         description="Serve the twins of a virtual-can rig: the CiA 402 drive on a CAN bus over loopback"
         " TCP (python-can interface hdrig-tcp) and the DAQ board on a pty; prints one JSON line saying"
         " where (can, daq, node_id), then runs until Ctrl-C or SIGTERM.",
     )
-    twin.add_argument("--rig", required=True, metavar="RIG", help="rig file, or a name in configs/rigs")
+    _rig_argument(twin)
     twin.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (default 0: any free)")
-    twin.set_defaults(handler=cmd_twin)
     return parser
 
 
