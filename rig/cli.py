@@ -20,6 +20,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
+from pydantic import BaseModel
+
 from model.errors import UserInputError
 from model.inputs import KINDS
 from model.params import HarmonicDriveModel, load_model, parse_model
@@ -62,9 +64,15 @@ def _say(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def _print_json(data: Any) -> None:
+def _print_json(data: Any) -> int:
+    """Print one JSON document on stdout (a document, a list of them, or plain data); exit status 0."""
+    if isinstance(data, BaseModel):
+        data = data.model_dump(mode="json")
+    elif isinstance(data, list):
+        data = [item.model_dump(mode="json") if isinstance(item, BaseModel) else item for item in data]
     json.dump(data, sys.stdout, indent=2)
     sys.stdout.write("\n")
+    return 0
 
 
 # --- where the work is done: here, or on a service (hdrig --server URL) -------------------------------
@@ -100,8 +108,7 @@ def cmd_model_list(args: argparse.Namespace) -> int:
     lab = _lab(args)
     rows = lab.list_models()
     if args.json:
-        _print_json([row.as_json() for row in rows])
-        return 0
+        return _print_json(rows)
     width = max((len(r.name) for r in rows), default=4)
     for row in rows:
         print(f"{row.name:<{width}}  {row.description.split('. ')[0][:90]}")
@@ -237,8 +244,7 @@ def cmd_runs_list(args: argparse.Namespace) -> int:
     lab = _lab(args)
     runs = lab.list_runs()
     if args.json:
-        _print_json([run.as_json() for run in runs])
-        return 0
+        return _print_json(runs)
     if not runs:
         _say(f"no runs in {lab.store_where}")
         return 0
@@ -262,8 +268,7 @@ def cmd_runs_list(args: argparse.Namespace) -> int:
 def cmd_runs_show(args: argparse.Namespace) -> int:
     run = _lab(args).run_document(args.run)
     if args.json:
-        _print_json(run.as_json())
-        return 0
+        return _print_json(run)
     model = f"{run.model_name} ({run.model_hash})" if run.model_name else "-"
     fields = {
         "id": run.id,
@@ -295,7 +300,7 @@ def cmd_runs_analyze(args: argparse.Namespace) -> int:
     _here_only(args)
     run = actions.analyze_run(RunStore(), args.run)
     if args.json:
-        _print_json(run.as_json())
+        _print_json(run)
     else:
         print(_summary(run))
     return 0
@@ -315,8 +320,7 @@ def cmd_trend(args: argparse.Namespace) -> int:
 
     document = actions.trend(RunStore(), run_id=args.run, unit=args.unit, plot_dir=args.plot)
     if args.json:
-        _print_json(document.as_json())
-        return 0
+        return _print_json(document)
     header = ("run", "#", "time h", "cycles", "F_c N·m", "b N·m·s/rad", "K_s N·m/rad")
     print("{:<36} {:>3} {:>8} {:>8} {:>18} {:>20} {:>16}".format(*header))
     for p in document.points:
@@ -359,8 +363,7 @@ def _analysis(args: argparse.Namespace, action: Callable[..., Any], **options: A
 def cmd_fit(args: argparse.Namespace) -> int:
     result = _analysis(args, _lab(args).fit, joint=not args.no_joint)
     if args.json:
-        _print_json(result.as_json())
-        return 0
+        return _print_json(result)
     width = max(len(name) for name in result.parameters)
     for name, row in result.parameters.items():
         sigma = f"± {row.uncertainty:.3g}" if row.uncertainty is not None else "not determined"
@@ -376,8 +379,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
 def cmd_gaps(args: argparse.Namespace) -> int:
     result = _analysis(args, _lab(args).find_gaps)
     if args.json:
-        _print_json(result.as_json())
-        return 0
+        return _print_json(result)
     print(result.verdict)
     for number, step in enumerate(result.steps, 1):
         print(
@@ -409,8 +411,7 @@ def cmd_keys_list(args: argparse.Namespace) -> int:
     _here_only(args)
     keys = access.list_keys(RunStore())
     if args.json:
-        _print_json([key.model_dump(mode="json") for key in keys])
-        return 0
+        return _print_json(keys)
     for key in keys:
         state = f"revoked {key.revoked}" if key.revoked else "live"
         print(f"{key.name:<24} {key.role:<9} {key.created}  {state}")
