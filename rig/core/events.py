@@ -14,7 +14,9 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
-DEFAULT_CAPACITY = 20_000  # events kept: minutes of a 1 kHz run's decimated samples
+DEFAULT_CAPACITY = 5_000
+"""Events kept: ~10 minutes of a run's decimated samples (8 a second), for a client resuming with its
+Last-Event-ID; a sample event holds ~5 kB of plain floats, so the log stays near 25 MB on runs of hours."""
 
 
 class EventKind(StrEnum):
