@@ -1,9 +1,12 @@
-"""The run store: a SQLite catalog of runs plus their time series as Parquet, under one home folder.
+"""The run store: a catalog of runs (`rig.catalog`: SQLite in the home folder, or a database URL) plus their
+time series as Parquet files (`rig.datastore`: the home folder, or object storage), and each run's artifacts
+in the home folder.
 
-Layout under the home folder:
+Layout under the home folder (the data files under `$HDRIG_DATA` instead, when set):
 
     catalog.sqlite                  table `runs`, one row per run (WAL mode: readers never block the writer);
-                                    table `checkpoints`, the estimates of each checkpoint of an endurance run
+                                    table `checkpoints`, the estimates of each checkpoint of an endurance run;
+                                    `run_tags`, `unit_fits`, `keys`, `audit` (or at `$HDRIG_CATALOG`)
     runs/<id>/part-000000.parquet   while recording: one small file per flush
     runs/<id>/merged-000000-000015.parquet   while recording: parts 0..15 compacted into one file
     runs/<id>/data.parquet          once sealed: all rows in one file (row groups of 65,536 rows), with the
@@ -28,16 +31,15 @@ are read from the row groups that hold them only.
 
 from __future__ import annotations
 
-import contextlib
+import getpass
 import json
 import math
 import os
 import re
 import secrets
 import socket
-import sqlite3
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from datetime import UTC, datetime
 from enum import StrEnum
 from pathlib import Path
@@ -46,10 +48,14 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
-import pyarrow.parquet as pq
+import sqlalchemy as sa
 
 from model.errors import UserInputError
 from model.run import Run, RunFormatError
+from rig import catalog as tables
+from rig.catalog import STORED_STATUSES as _STORED
+from rig.catalog import Catalog, StoreError, default_url
+from rig.datastore import RunData, default_data_url
 from rig.importmap import MAPPED_SUFFIXES, ColumnSource, read_mapped
 from rig.runfile import (
     READ_SUFFIXES,
@@ -61,7 +67,7 @@ from rig.runfile import (
 )
 from rig.status import RunStatus
 
-STORED_STATUSES = (RunStatus.RUNNING, RunStatus.COMPLETE, RunStatus.ABORTED, RunStatus.INTERRUPTED)
+STORED_STATUSES = tuple(RunStatus(s) for s in _STORED)
 """The statuses a run in the catalog can have (`queued` and `failed` runs never reached the store)."""
 EXPORT_FORMATS = ("csv", "parquet", "mat")
 DATA_FILE = "data.parquet"
@@ -83,45 +89,9 @@ MERGE_FANIN = 16
 """Parts per merged file, and merged files of one size per file of the next (16, 256, 4096 parts...)."""
 _MERGE_LEVELS = 5  # up to 16**5 parts: 12 days at one flush a second
 
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS runs (
-    id          TEXT PRIMARY KEY,
-    experiment  TEXT NOT NULL,
-    rig         TEXT NOT NULL,
-    model_name  TEXT,
-    model_hash  TEXT,
-    status      TEXT NOT NULL CHECK (status IN (STATUSES)),
-    reason      TEXT,
-    started     TEXT NOT NULL,
-    ended       TEXT,
-    samples     INTEGER NOT NULL DEFAULT 0,
-    metrics     TEXT NOT NULL DEFAULT '{}',
-    path        TEXT NOT NULL,
-    meta        TEXT NOT NULL DEFAULT '{}',
-    pid         INTEGER,
-    host        TEXT,
-    pid_started TEXT,
-    analysis    TEXT
-);
-CREATE INDEX IF NOT EXISTS runs_started ON runs (started);
-CREATE TABLE IF NOT EXISTS checkpoints (
-    run_id      TEXT NOT NULL REFERENCES runs (id),
-    idx         INTEGER NOT NULL,
-    unit        TEXT,
-    t_s         REAL NOT NULL,
-    estimates   TEXT NOT NULL,
-    PRIMARY KEY (run_id, idx)
-);
-CREATE INDEX IF NOT EXISTS checkpoints_unit ON checkpoints (unit);
-""".replace("STATUSES", ", ".join(f"'{s}'" for s in STORED_STATUSES))
-
 
 class UnknownRunError(UserInputError):
     """No run with this id in the catalog."""
-
-
-class StoreError(UserInputError):
-    """The store's folder or catalog cannot be used (not writable, a damaged catalog): one line."""
 
 
 def default_home() -> Path:
@@ -138,6 +108,62 @@ def new_run_id(experiment: str, moment: datetime | None = None) -> str:
     """A fresh run id: UTC time, the experiment, a random suffix (`20261121-080824-speed-sweep-7173`)."""
     slug = re.sub(r"[^a-z0-9]+", "-", experiment.lower()).strip("-")[:40] or "run"
     return f"{(moment or datetime.now(UTC)):%Y%m%d-%H%M%S}-{slug}-{secrets.token_hex(2)}"
+
+
+TAG_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._:=@/+-]{0,99}")
+
+
+def check_tags(tags: Sequence[str]) -> list[str]:
+    """Free tags, each 1-100 letters, digits or `._:=@/+-` (e.g. `line=3`, `batch:2026-07`), once each."""
+    for tag in tags:
+        if not isinstance(tag, str) or not TAG_PATTERN.fullmatch(tag):
+            raise UserInputError(
+                f"tag {tag!r}: 1-100 letters, digits, '.', '_', ':', '=', '@', '/', '+' or '-',"
+                " starting with a letter or digit"
+            )
+    return list(dict.fromkeys(tags))
+
+
+def os_user() -> str | None:
+    """Who runs this process, as the operator of the runs it starts from the command line."""
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):  # no passwd entry and no LOGNAME/USER: say nothing rather than guess
+        return None
+
+
+def _match(column: Any, pattern: str) -> Any:
+    """An exact match, or a glob's (`*`, `?`) as SQL LIKE with the other LIKE characters escaped."""
+    if not any(ch in pattern for ch in "*?"):
+        return column == pattern
+    escaped = pattern.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+    return column.like(escaped.replace("*", "%").replace("?", "_"), escape="\\")
+
+
+def run_filter(
+    unit: str | None = None,
+    rig: str | None = None,
+    tags: Sequence[str] = (),
+    operator: str | None = None,
+    experiment: str | None = None,
+    status: str | None = None,
+) -> list[Any]:
+    """The catalog conditions selecting runs by these fields (each exact or a glob; all tags required)."""
+    runs, run_tags = tables.runs, tables.run_tags
+    where = [
+        _match(column, value)
+        for column, value in (
+            (runs.c.unit, unit),
+            (runs.c.rig, rig),
+            (runs.c.operator, operator),
+            (runs.c.experiment, experiment),
+            (runs.c.status, status),
+        )
+        if value is not None
+    ]
+    for tag in tags:
+        where.append(runs.c.id.in_(sa.select(run_tags.c.run_id).where(_match(run_tags.c.tag, tag))))
+    return where
 
 
 def _process_start(pid: int) -> tuple[str, str] | None:
@@ -173,9 +199,9 @@ class UnknownColumnError(UserInputError):
     """A column asked for that the run does not have; the message lists the ones it has."""
 
 
-def _part_range(path: Path) -> tuple[int, int] | None:
+def _part_range(name: str) -> tuple[int, int] | None:
     """(first, last) part number a part or merged file holds; None for any other file."""
-    m = _CHUNK.fullmatch(path.name)
+    m = _CHUNK.fullmatch(name.rsplit("/", 1)[-1])
     if m is None:
         return None
     if m.group(1) is not None:
@@ -183,30 +209,35 @@ def _part_range(path: Path) -> tuple[int, int] | None:
     return int(m.group(2)), int(m.group(3))
 
 
-def _chunks(run_dir: Path) -> list[Path]:
-    """A recording run's part and merged files in row order, each row once: a file whose parts another
-    file also holds (a compaction's sources not yet deleted) is left out."""
+def _chunks(data: RunData, run_id: str) -> list[str]:
+    """A recording run's part and merged files (paths) in row order, each row once: a file whose parts
+    another file also holds (a compaction's sources not yet deleted) is left out."""
     found = sorted(
-        (span[0], -span[1], path) for path in run_dir.iterdir() if (span := _part_range(path)) is not None
+        (span[0], -span[1], name) for name in data.names(run_id) if (span := _part_range(name)) is not None
     )
-    kept: list[Path] = []
+    kept: list[str] = []
     covered = -1
-    for _, neg_last, path in found:  # by first part, the widest file first
+    for _, neg_last, name in found:  # by first part, the widest file first
         if -neg_last > covered:
-            kept.append(path)
+            kept.append(data.path(run_id, name))
             covered = -neg_last
     return kept
 
 
-def _copy_rows(sources: list[Path], target: Path, meta: dict[str, Any]) -> int:
-    """Stream the rows of Parquet files, in order, into one file of whole row groups; rows copied."""
-    names = ordered_columns(pq.ParquetFile(sources[0]).schema_arrow.names)
-    with RunFileWriter(target, names, meta, as_run=False, checked=False) as writer:
+def _copy_rows(data: RunData, sources: list[str], run_id: str, target: str, meta: dict[str, Any]) -> int:
+    """Stream the rows of a run's Parquet files, in order, into its file `target` of whole row groups;
+    rows copied."""
+    with data.parquet(sources[0]) as first:
+        names = ordered_columns(first.schema_arrow.names)
+    with (
+        data.writing(run_id, target) as local,
+        RunFileWriter(local, names, meta, as_run=False, checked=False) as writer,
+    ):
         for source in sources:
-            parquet = pq.ParquetFile(source)
-            for group in range(parquet.num_row_groups):
-                table = parquet.read_row_group(group, columns=names)
-                writer.write({c: table.column(c).to_numpy() for c in names})
+            with data.parquet(source) as parquet:
+                for group in range(parquet.num_row_groups):
+                    table = parquet.read_row_group(group, columns=names)
+                    writer.write({c: table.column(c).to_numpy() for c in names})
     return writer.check.rows
 
 
@@ -225,8 +256,9 @@ def _merges_due(part: int) -> list[tuple[int, int]]:
 class _Compactor:
     """Merges a recording run's parts on a thread of its own, so the flushes that write parts stay on time."""
 
-    def __init__(self, run_dir: Path) -> None:
-        self.run_dir = run_dir
+    def __init__(self, data: RunData, run_id: str) -> None:
+        self.data = data
+        self.run_id = run_id
         self._lock = threading.Lock()
         self._queue: list[tuple[int, int]] = []
         self._thread: threading.Thread | None = None
@@ -239,7 +271,7 @@ class _Compactor:
         with self._lock:
             self._queue += due
             if self._thread is None:
-                self._thread = threading.Thread(target=self._work, name=f"compact-{self.run_dir.name}")
+                self._thread = threading.Thread(target=self._work, name=f"compact-{self.run_id}")
                 self._thread.daemon = True
                 self._thread.start()
 
@@ -258,13 +290,13 @@ class _Compactor:
 
     def _merge(self, first: int, last: int) -> None:
         sources = []
-        for path in _chunks(self.run_dir):
+        for path in _chunks(self.data, self.run_id):
             span = _part_range(path)
             if span is not None and first <= span[0] and span[1] <= last:
                 sources.append(path)
-        _copy_rows(sources, self.run_dir / f"merged-{first:06d}-{last:06d}.parquet", {})
+        _copy_rows(self.data, sources, self.run_id, f"merged-{first:06d}-{last:06d}.parquet", {})
         for source in sources:  # only once the merged file is in place
-            source.unlink()
+            self.data.delete(source)
 
     def join(self) -> None:
         """Wait for the merges asked so far; raise the error of one that failed."""
@@ -279,9 +311,19 @@ class _Compactor:
 
 
 class RunStore:
-    """The catalog and data of all runs under `home` (default: `default_home()`)."""
+    """The catalog and data of all runs under `home` (default: `default_home()`).
 
-    def __init__(self, home: str | os.PathLike[str] | None = None) -> None:
+    `catalog`: a database URL (default `$HDRIG_CATALOG`, else SQLite `catalog.sqlite` in `home`); `data`:
+    where the runs' sample files live (default `$HDRIG_DATA`, else `home`), a folder or an fsspec URL
+    such as `s3://bucket/prefix`. Artifacts and analyses stay in `home`.
+    """
+
+    def __init__(
+        self,
+        home: str | os.PathLike[str] | None = None,
+        catalog: str | None = None,
+        data: str | os.PathLike[str] | None = None,
+    ) -> None:
         self.home = Path(home) if home is not None else default_home()
         try:
             (self.home / "runs").mkdir(parents=True, exist_ok=True)
@@ -290,34 +332,12 @@ class RunStore:
                 f"{self.home}: cannot hold the run store ({exc.strerror});"
                 " set HDRIG_HOME to a writable folder"
             ) from None
-        self.catalog_path = self.home / "catalog.sqlite"
-        with self._db() as db:
-            db.execute("PRAGMA journal_mode=WAL")
-            db.executescript(_SCHEMA)
-            if "analysis" not in {row["name"] for row in db.execute("PRAGMA table_info(runs)")}:
-                db.execute("ALTER TABLE runs ADD COLUMN analysis TEXT")  # a catalog from before the column
-
-    @contextlib.contextmanager
-    def _db(self) -> Iterator[sqlite3.Connection]:
-        # One short connection per operation: writers, listers and the service may be different threads.
-        try:
-            db = sqlite3.connect(self.catalog_path, timeout=30.0)
-        except sqlite3.OperationalError as exc:
-            raise StoreError(f"{self.catalog_path}: cannot open the run catalog ({exc})") from None
-        db.row_factory = sqlite3.Row
-        try:
-            with db:  # commits, or rolls back on an exception
-                yield db
-        except sqlite3.DatabaseError as exc:
-            if type(exc) is not sqlite3.DatabaseError:  # integrity, locking...: the caller's to handle
-                raise
-            # A damaged file: told as such; the runs' data stay in runs/<id>/ (Parquet, with their metadata).
-            raise StoreError(
-                f"{self.catalog_path}: the run catalog is damaged ({exc}); move it aside and the store"
-                " starts a new one (the runs' data files in runs/ are untouched)"
-            ) from None
-        finally:
-            db.close()
+        self.catalog = Catalog(catalog or default_url(self.home))
+        self.catalog_path: Path | None = (
+            Path(str(self.catalog.url.database)) if self.catalog.is_sqlite else None
+        )
+        """The SQLite file of the catalog; None for a catalog on a database server (see `catalog.where`)."""
+        self.data = RunData(data if data is not None else default_data_url(self.home))
 
     # ---- recording ------------------------------------------------------------------------------
 
@@ -332,15 +352,21 @@ class RunStore:
         flush_interval_s: float = 1.0,
         background: bool = False,
         run_id: str | None = None,
+        unit: str | None = None,
+        operator: str | None = None,
+        tags: Sequence[str] = (),
     ) -> RunWriter:
         """Start a run in the catalog (status `running`) and return its writer (see RunWriter).
 
         `run_id`: an id from `new_run_id`, reserved by a caller that had to name the run before it began.
+        `unit`: the gear's serial number; `operator`: who started it (default: this process' OS user);
+        `tags`: free tags to search the run by (`check_tags`).
         """
         if "t" not in columns:
             raise ValueError(f"run columns {columns} lack the time column 't'")
         if len(set(columns)) != len(columns):
             raise ValueError(f"run columns {columns} name a column twice")
+        tag_list = check_tags(tags)
         now = datetime.now(UTC)
         stat = _process_start(os.getpid())
         row: dict[str, Any] = {
@@ -354,154 +380,234 @@ class RunStore:
             "pid": os.getpid(),
             "host": socket.gethostname(),
             "pid_started": stat[1] if stat else None,
+            "unit": unit,
+            "operator": operator or os_user(),
         }
         for _ in range(10):
             chosen = run_id or new_run_id(experiment, now)
             row.update(id=chosen, path=f"runs/{chosen}")
             try:
-                with self._db() as db:
-                    db.execute(
-                        f"INSERT INTO runs ({', '.join(row)}) VALUES ({', '.join(':' + k for k in row)})", row
-                    )
+                with self.catalog.write() as db:
+                    db.execute(tables.runs.insert().values(**row))
+                    if tag_list:
+                        db.execute(tables.run_tags.insert(), [{"run_id": chosen, "tag": t} for t in tag_list])
                 break
-            except sqlite3.IntegrityError:
+            except sa.exc.IntegrityError:
                 if run_id is not None:
-                    raise ValueError(f"run id {run_id!r} is already in {self.catalog_path}") from None
+                    raise ValueError(f"run id {run_id!r} is already in {self.catalog.where}") from None
                 # the random suffix collided within the same second: draw another
         else:
-            raise RuntimeError(f"could not find a free run id for {experiment!r} in {self.catalog_path}")
+            raise RuntimeError(f"could not find a free run id for {experiment!r} in {self.catalog.where}")
         run_id = chosen
         self.run_dir(run_id).mkdir()
+        self.data.make_run_folder(run_id)
         return RunWriter(self, run_id, columns, flush_interval_s, background)
 
     def _seal(self, run_id: str) -> tuple[int, str]:
         """Stream a run's part and merged files into `data.parquet`; return (samples, catalog path)."""
-        run_dir = self.run_dir(run_id)
-        chunks = _chunks(run_dir)
-        data = run_dir / DATA_FILE
+        chunks = _chunks(self.data, run_id)
+        data = self.data.path(run_id, DATA_FILE)
         if not chunks:
-            if not data.exists():
+            if not self.data.exists(data):
                 return 0, f"runs/{run_id}"  # nothing was ever flushed
-            return pq.ParquetFile(data).metadata.num_rows, f"runs/{run_id}/{DATA_FILE}"
-        with self._db() as db:
+            with self.data.parquet(data) as parquet:
+                return parquet.metadata.num_rows, f"runs/{run_id}/{DATA_FILE}"
+        with self.catalog.read() as db:
             row = self._row(db, run_id)
-        samples = _copy_rows(chunks, data, self._run_meta(row))
+        samples = _copy_rows(self.data, chunks, run_id, DATA_FILE, self._run_meta(row))
         # Chunks go only after the data file is in place; a reader meanwhile prefers the data file. A writer
-        # killed mid-flush or mid-merge also leaves a temporary file behind.
-        for leftover in list(run_dir.iterdir()):
-            temporary = leftover.name.startswith(".") and leftover.suffix == ".tmp"
+        # killed mid-flush or mid-merge also leaves a temporary file behind (on disk; an object store keeps
+        # no partial uploads under a name).
+        for leftover in self.data.names(run_id):
+            temporary = leftover.startswith(".") and leftover.endswith(".tmp")
             if temporary or _part_range(leftover) is not None:
-                leftover.unlink(missing_ok=True)
+                self.data.delete(self.data.path(run_id, leftover))
         return samples, f"runs/{run_id}/{DATA_FILE}"
 
     # ---- catalog --------------------------------------------------------------------------------
 
-    def _row(self, db: sqlite3.Connection, run_id: str) -> sqlite3.Row:
-        row = db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
+    def _row(self, db: sa.Connection, run_id: str) -> dict[str, Any]:
+        row = db.execute(sa.select(tables.runs).where(tables.runs.c.id == run_id)).first()
         if row is None:
-            raise UnknownRunError(f"unknown run id {run_id!r} (not in {self.catalog_path})")
-        return row
+            raise UnknownRunError(f"unknown run id {run_id!r} (not in {self.catalog.where})")
+        return dict(row._mapping)
 
-    def _reconcile(self, rows: list[sqlite3.Row]) -> bool:
+    def _reconcile(self, rows: list[dict[str, Any]]) -> bool:
         """Mark `running` runs, and running analyses, whose process has died as `interrupted`; True if any
         changed."""
+        runs = tables.runs
         changed = False
         for row in rows:
             if row["analysis"] == AnalysisState.RUNNING and not _process_alive(
                 row["pid"], row["host"], row["pid_started"]
             ):
-                with self._db() as db:
+                with self.catalog.write() as db:
                     db.execute(
-                        "UPDATE runs SET analysis = ? WHERE id = ? AND analysis = ?",
-                        (AnalysisState.INTERRUPTED.value, row["id"], AnalysisState.RUNNING.value),
+                        runs.update()
+                        .where(runs.c.id == row["id"], runs.c.analysis == AnalysisState.RUNNING.value)
+                        .values(analysis=AnalysisState.INTERRUPTED.value)
                     )
                 changed = True
             if row["status"] != RunStatus.RUNNING or _process_alive(
                 row["pid"], row["host"], row["pid_started"]
             ):
                 continue
-            with self._db() as db:
+            with self.catalog.write() as db:
                 # Only the lister whose update lands seals the run, so two listers never seal it together.
                 claimed = db.execute(
-                    "UPDATE runs SET status = ? WHERE id = ? AND status = ?",
-                    (RunStatus.INTERRUPTED.value, row["id"], RunStatus.RUNNING.value),
+                    runs.update()
+                    .where(runs.c.id == row["id"], runs.c.status == RunStatus.RUNNING.value)
+                    .values(status=RunStatus.INTERRUPTED.value)
                 ).rowcount
             if not claimed:
                 continue
-            chunks = _chunks(self.run_dir(row["id"]))
-            last_write = max((c.stat().st_mtime for c in chunks), default=None)
+            chunks = _chunks(self.data, row["id"])
+            last_write = max((self.data.modified_s(c) for c in chunks), default=None)
             samples, path = self._seal(row["id"])
             ended = _utc(datetime.fromtimestamp(last_write, UTC)) if last_write else row["started"]
-            with self._db() as db:
+            with self.catalog.write() as db:
                 db.execute(
-                    "UPDATE runs SET samples = ?, path = ?, ended = ? WHERE id = ?",
-                    (samples, path, ended, row["id"]),
+                    runs.update()
+                    .where(runs.c.id == row["id"])
+                    .values(samples=samples, path=path, ended=ended)
                 )
             changed = True
         return changed
 
-    def _public(self, row: sqlite3.Row) -> dict[str, Any]:
+    def _public(self, row: dict[str, Any], tags: list[str]) -> dict[str, Any]:
         entry = dict(row)
         entry["metrics"] = json.loads(entry["metrics"])
         entry["meta"] = json.loads(entry["meta"])
-        entry["path"] = str(self.home / entry["path"])
+        entry["path"] = self.data.display(entry["path"])
+        entry["tags"] = tags
         return entry
 
-    def list_runs(self) -> list[dict[str, Any]]:
-        """All runs, oldest first, each a dict of its catalog fields (metrics and meta decoded)."""
-        query = "SELECT * FROM runs ORDER BY started, id"
-        with self._db() as db:
-            rows = db.execute(query).fetchall()
+    @staticmethod
+    def _ids(where: list[Any], limit: int | None) -> Any:
+        """The ids the filter selects (the newest `limit` of them), as a subquery; None: every run."""
+        runs = tables.runs
+        if not where and limit is None:
+            return None
+        ids = sa.select(runs.c.id).where(*where)
+        if limit is not None:
+            ids = ids.order_by(runs.c.started.desc(), runs.c.id.desc()).limit(limit)
+        return ids
+
+    def _select(self, where: list[Any], limit: int | None = None) -> list[dict[str, Any]]:
+        runs = tables.runs
+        query = sa.select(runs).order_by(runs.c.started, runs.c.id)
+        ids = self._ids(where, limit)
+        if ids is not None:
+            query = query.where(runs.c.id.in_(ids.scalar_subquery()))
+        with self.catalog.read() as db:
+            return [dict(r._mapping) for r in db.execute(query)]
+
+    def _tags_of(self, where: list[Any], limit: int | None = None) -> dict[str, list[str]]:
+        tags = tables.run_tags
+        query = sa.select(tags.c.run_id, tags.c.tag).order_by(tags.c.run_id, tags.c.tag)
+        ids = self._ids(where, limit)
+        if ids is not None:
+            query = query.where(tags.c.run_id.in_(ids.scalar_subquery()))
+        found: dict[str, list[str]] = {}
+        with self.catalog.read() as db:
+            for run_id, tag in db.execute(query):
+                found.setdefault(run_id, []).append(tag)
+        return found
+
+    def list_runs(
+        self,
+        unit: str | None = None,
+        rig: str | None = None,
+        tags: Sequence[str] = (),
+        operator: str | None = None,
+        experiment: str | None = None,
+        status: str | None = None,
+        limit: int | None = None,
+    ) -> list[dict[str, Any]]:
+        """The runs, oldest first, each a dict of its catalog fields (metrics and meta decoded, `tags` a
+        list). Filters: `unit`, `rig`, `operator` and `experiment` match exactly or as a glob (`HD25-*`);
+        every one of `tags` (exact or glob) must be on the run; `limit`: only the newest so many."""
+        where = run_filter(
+            unit=unit, rig=rig, tags=tags, operator=operator, experiment=experiment, status=status
+        )
+        rows = self._select(where, limit)
         if self._reconcile(rows):
-            with self._db() as db:
-                rows = db.execute(query).fetchall()
-        return [self._public(row) for row in rows]
+            rows = self._select(where, limit)
+        tags_of = self._tags_of(where, limit)
+        return [self._public(row, tags_of.get(row["id"], [])) for row in rows]
 
     def get(self, run_id: str) -> dict[str, Any]:
         """One run's catalog fields, as in `list_runs`."""
-        with self._db() as db:
+        with self.catalog.read() as db:
             row = self._row(db, run_id)
         if self._reconcile([row]):
-            with self._db() as db:
+            with self.catalog.read() as db:
                 row = self._row(db, run_id)
-        return self._public(row)
+        return self._public(row, self._tags_of([tables.runs.c.id == run_id]).get(run_id, []))
+
+    def add_tags(self, run_id: str, tags: Sequence[str]) -> list[str]:
+        """Put free tags on a run (those it has already are kept once); the run's tags after."""
+        tag_list = check_tags(tags)
+        run_tags = tables.run_tags
+        with self.catalog.write() as db:
+            self._row(db, run_id)
+            have = set(db.execute(sa.select(run_tags.c.tag).where(run_tags.c.run_id == run_id)).scalars())
+            new = [t for t in tag_list if t not in have]
+            if new:
+                db.execute(run_tags.insert(), [{"run_id": run_id, "tag": t} for t in new])
+        return sorted(have | set(new))
 
     def set_metrics(self, run_id: str, metrics: dict[str, Any]) -> None:
         """Replace a run's metrics (a JSON-serializable dict)."""
-        with self._db() as db:
+        with self.catalog.write() as db:
             self._row(db, run_id)
-            db.execute("UPDATE runs SET metrics = ? WHERE id = ?", (json_text(metrics), run_id))
+            db.execute(
+                tables.runs.update().where(tables.runs.c.id == run_id).values(metrics=json_text(metrics))
+            )
 
     def set_checkpoints(self, run_id: str, unit: str | None, checkpoints: list[dict[str, Any]]) -> None:
         """Replace a run's checkpoint estimates (each with `index` and `t_s` [s]) for the gear `unit`."""
-        with self._db() as db:
+        table = tables.checkpoints
+        with self.catalog.write() as db:
             self._row(db, run_id)
-            db.execute("DELETE FROM checkpoints WHERE run_id = ?", (run_id,))
-            db.executemany(
-                "INSERT INTO checkpoints (run_id, idx, unit, t_s, estimates) VALUES (?, ?, ?, ?, ?)",
-                [(run_id, int(c["index"]), unit, float(c["t_s"]), json_text(c)) for c in checkpoints],
-            )
+            db.execute(table.delete().where(table.c.run_id == run_id))
+            if checkpoints:
+                db.execute(
+                    table.insert(),
+                    [
+                        {
+                            "run_id": run_id,
+                            "idx": int(c["index"]),
+                            "unit": unit,
+                            "t_s": float(c["t_s"]),
+                            "estimates": json_text(c),
+                        }
+                        for c in checkpoints
+                    ],
+                )
 
     def checkpoints(self, run_id: str | None = None, unit: str | None = None) -> list[dict[str, Any]]:
         """Checkpoint estimates of one run, or of every run of a gear unit, in order of the runs' start
         and then of the checkpoints; each with its run's `run_id`, `started` and `unit`."""
         if (run_id is None) == (unit is None):
             raise ValueError("checkpoints: give a run id or a unit, not both")
+        c, r = tables.checkpoints, tables.runs
         query = (
-            "SELECT c.run_id, c.unit, c.estimates, r.started"
-            " FROM checkpoints c JOIN runs r ON r.id = c.run_id"
-            f" WHERE {'c.run_id' if run_id is not None else 'c.unit'} = ? ORDER BY r.started, c.run_id, c.idx"
+            sa.select(c.c.run_id, c.c.unit, c.c.estimates, r.c.started)
+            .join(r, r.c.id == c.c.run_id)
+            .where(c.c.run_id == run_id if run_id is not None else c.c.unit == unit)
+            .order_by(r.c.started, c.c.run_id, c.c.idx)
         )
-        with self._db() as db:
+        with self.catalog.read() as db:
             if run_id is not None:
                 self._row(db, run_id)
-            rows = db.execute(query, (run_id if run_id is not None else unit,)).fetchall()
+            rows = db.execute(query).fetchall()
         return [
             {
-                **json.loads(row["estimates"]),
-                "run_id": row["run_id"],
-                "unit": row["unit"],
-                "started": row["started"],
+                **json.loads(row.estimates),
+                "run_id": row.run_id,
+                "unit": row.unit,
+                "started": row.started,
             }
             for row in rows
         ]
@@ -509,26 +615,32 @@ class RunStore:
     def set_analysis(self, run_id: str, state: AnalysisState) -> None:
         """Record where a run's analysis stands; `running` names this process as the one doing it, so
         a listing finds it `interrupted` should this process die first."""
-        with self._db() as db:
+        runs = tables.runs
+        with self.catalog.write() as db:
             self._row(db, run_id)
+            update = runs.update().where(runs.c.id == run_id)
             if state == AnalysisState.RUNNING:
                 stat = _process_start(os.getpid())
                 db.execute(
-                    "UPDATE runs SET analysis = ?, pid = ?, host = ?, pid_started = ? WHERE id = ?",
-                    (state.value, os.getpid(), socket.gethostname(), stat[1] if stat else None, run_id),
+                    update.values(
+                        analysis=state.value,
+                        pid=os.getpid(),
+                        host=socket.gethostname(),
+                        pid_started=stat[1] if stat else None,
+                    )
                 )
             else:
-                db.execute("UPDATE runs SET analysis = ? WHERE id = ?", (AnalysisState(state).value, run_id))
+                db.execute(update.values(analysis=AnalysisState(state).value))
 
     # ---- data -----------------------------------------------------------------------------------
 
     def run_dir(self, run_id: str) -> Path:
-        """The folder holding a run's data and artifacts."""
+        """The folder holding a run's artifacts (and its data files, when the data live in the home)."""
         return self.home / "runs" / run_id
 
     def add_artifact(self, run_id: str, name: str) -> Path:
         """A path in the run's artifacts folder to write a derived result or plot to (not created)."""
-        with self._db() as db:
+        with self.catalog.read() as db:
             self._row(db, run_id)
         relative = Path(name)
         if not name or relative.is_absolute() or ".." in relative.parts:
@@ -538,7 +650,7 @@ class RunStore:
         return path
 
     @staticmethod
-    def _run_meta(row: sqlite3.Row) -> dict[str, Any]:
+    def _run_meta(row: dict[str, Any]) -> dict[str, Any]:
         # The catalog is the authority on what, where and with which model; the rest is the writer's meta.
         meta: dict[str, Any] = json.loads(row["meta"])
         meta.update(
@@ -550,21 +662,21 @@ class RunStore:
         )
         return meta
 
-    def _sources(self, run_id: str) -> list[Path]:
-        run_dir = self.run_dir(run_id)
-        data = run_dir / DATA_FILE
-        return [data] if data.exists() else _chunks(run_dir)
+    def _sources(self, run_id: str) -> list[str]:
+        data = self.data.path(run_id, DATA_FILE)
+        return [data] if self.data.exists(data) else _chunks(self.data, run_id)
 
     def columns(self, run_id: str) -> list[str]:
         """The names of a run's columns, from a file's schema (no rows read); empty before the first flush."""
-        with self._db() as db:
+        with self.catalog.read() as db:
             self._row(db, run_id)
         while True:
             sources = self._sources(run_id)
             if not sources:
                 return []
             try:
-                return ordered_columns(pq.ParquetFile(sources[0]).schema_arrow.names)
+                with self.data.parquet(sources[0]) as parquet:
+                    return ordered_columns(parquet.schema_arrow.names)
             except FileNotFoundError:
                 continue  # merged or sealed away since the listing: the new file is there
 
@@ -619,23 +731,23 @@ class RunStore:
         """(row number after the group, its selected samples) for each row group past row `skip_to`."""
         offset = 0
         for source in self._sources(run_id):
-            parquet = pq.ParquetFile(source)
-            t_index = parquet.schema_arrow.get_field_index("t")
-            for group in range(parquet.num_row_groups):
-                meta = parquet.metadata.row_group(group)
-                start, offset = offset, offset + meta.num_rows
-                if offset <= skip_to or not _may_hold(meta.column(t_index).statistics, lo, hi):
-                    continue
-                if rows is not None and not any(a < offset and b > start for a, b in rows):
-                    continue
-                table = parquet.read_row_group(group, columns=names)
-                block = {c: np.asarray(table.column(c).to_numpy(), dtype=np.float64) for c in names}
-                keep = (block["t"] >= lo) & (block["t"] <= hi)
-                keep[: max(0, skip_to - start)] = False
-                if rows is not None:
-                    index = np.arange(start, offset)
-                    keep &= np.logical_or.reduce([(index >= a) & (index < b) for a, b in rows])
-                yield offset, {c: v[keep] for c, v in block.items()}
+            with self.data.parquet(source) as parquet:
+                t_index = parquet.schema_arrow.get_field_index("t")
+                for group in range(parquet.num_row_groups):
+                    meta = parquet.metadata.row_group(group)
+                    start, offset = offset, offset + meta.num_rows
+                    if offset <= skip_to or not _may_hold(meta.column(t_index).statistics, lo, hi):
+                        continue
+                    if rows is not None and not any(a < offset and b > start for a, b in rows):
+                        continue
+                    table = parquet.read_row_group(group, columns=names)
+                    block = {c: np.asarray(table.column(c).to_numpy(), dtype=np.float64) for c in names}
+                    keep = (block["t"] >= lo) & (block["t"] <= hi)
+                    keep[: max(0, skip_to - start)] = False
+                    if rows is not None:
+                        index = np.arange(start, offset)
+                        keep &= np.logical_or.reduce([(index >= a) & (index < b) for a, b in rows])
+                    yield offset, {c: v[keep] for c, v in block.items()}
 
     def read(
         self,
@@ -654,7 +766,7 @@ class RunStore:
         with the `segments` metadata renumbered to match (`segment_rows` works on it), validated as a
         run: what an analysis of a long run reads instead of all of it.
         """
-        with self._db() as db:
+        with self.catalog.read() as db:
             row = self._row(db, run_id)
         meta = self._run_meta(row)
         ranges = None
@@ -696,7 +808,7 @@ class RunStore:
         """
         out = export_path(run_id, fmt, out_path)
         self._refuse_own_files(out)
-        with self._db() as db:
+        with self.catalog.read() as db:
             row = self._row(db, run_id)
         selection = columns is not None or t0 is not None or t1 is not None
         names = self._selected(run_id, columns)
@@ -711,8 +823,14 @@ class RunStore:
         """An export never lands in the store's own files: a run's folder or the catalog (it would replace
         a run's samples behind the catalog's back)."""
         target, home = path.resolve(), self.home.resolve()  # resolved: `..` and links do not get round it
-        catalog = target.parent == home and target.name.startswith(self.catalog_path.name)
-        if target.is_relative_to(home / "runs") or catalog:
+        own = [home / "runs"]
+        if self.data.is_local:
+            own.append(Path(self.data.root).resolve() / "runs")
+        catalog = self.catalog_path is not None and (
+            target.parent == self.catalog_path.resolve().parent
+            and target.name.startswith(self.catalog_path.name)
+        )
+        if any(target.is_relative_to(folder) for folder in own) or catalog:
             raise UserInputError(f"{path}: inside the run store's own files ({home}); export outside them")
 
 
@@ -766,7 +884,7 @@ class RunWriter:
         self._last_t: float | None = None
         self._last_flush_s = monotonic()
         self._next_part = 0
-        self._compactor = _Compactor(store.run_dir(run_id))
+        self._compactor = _Compactor(store.data, run_id)
         self._buffer_lock = threading.Lock()  # the buffer, between appender and writer thread
         self._write_lock = threading.Lock()  # one flush at a time, so parts are numbered in order
         self._stop = threading.Event()
@@ -838,12 +956,14 @@ class RunWriter:
             if not pending:
                 return
             columns = {c: np.concatenate([b[c] for b in pending]) for c in self.columns}
-            write_parquet(columns, {}, self.run_dir / f"part-{self._next_part:06d}.parquet")
+            with self.store.data.writing(self.run_id, f"part-{self._next_part:06d}.parquet") as local:
+                write_parquet(columns, {}, local)
             self._compactor.part_written(self._next_part)
             self._next_part += 1
             self.samples += len(columns["t"])
-            with self.store._db() as db:
-                db.execute("UPDATE runs SET samples = ? WHERE id = ?", (self.samples, self.run_id))
+            runs = tables.runs
+            with self.store.catalog.write() as db:
+                db.execute(runs.update().where(runs.c.id == self.run_id).values(samples=self.samples))
 
     def finish(
         self,
@@ -865,28 +985,27 @@ class RunWriter:
         self.flush()
         self._compactor.join()
         samples, path = self.store._seal(self.run_id)
-        with self.store._db() as db:
-            db.execute(
-                "UPDATE runs SET status = ?, reason = ?, ended = ?, samples = ?, path = ?,"
-                " metrics = COALESCE(?, metrics) WHERE id = ?",
-                (
-                    RunStatus(status).value,
-                    reason,
-                    _utc(),
-                    samples,
-                    path,
-                    None if metrics is None else json_text(metrics),
-                    self.run_id,
-                ),
-            )
+        runs = tables.runs
+        values: dict[str, Any] = {
+            "status": RunStatus(status).value,
+            "reason": reason,
+            "ended": _utc(),
+            "samples": samples,
+            "path": path,
+        }
+        if metrics is not None:
+            values["metrics"] = json_text(metrics)
+        with self.store.catalog.write() as db:
+            db.execute(runs.update().where(runs.c.id == self.run_id).values(**values))
         self.closed = True
 
     def update_meta(self, extra: dict[str, Any]) -> None:
         """Merge keys into the run's metadata (e.g. what is known only once the run has started)."""
-        with self.store._db() as db:
+        runs = tables.runs
+        with self.store.catalog.write() as db:
             meta = json.loads(self.store._row(db, self.run_id)["meta"])
             meta.update(extra)
-            db.execute("UPDATE runs SET meta = ? WHERE id = ?", (json_text(meta), self.run_id))
+            db.execute(runs.update().where(runs.c.id == self.run_id).values(meta=json_text(meta)))
 
     def __enter__(self) -> RunWriter:
         return self

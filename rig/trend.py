@@ -25,7 +25,7 @@ def trend_document(store: RunStore, run_id: str | None = None, unit: str | None 
     rows = store.checkpoints(run_id=run_id, unit=unit)
     if not rows:
         what = f"run {run_id}" if run_id is not None else f"unit {unit!r}"
-        raise UserInputError(f"trend: {what} has no checkpoints in {store.catalog_path} (run `endurance`)")
+        raise UserInputError(f"trend: {what} has no checkpoints in {store.catalog.where} (run `endurance`)")
     origin = datetime.fromisoformat(rows[0]["started"])
     points, tracks = [], []
     cycles_before = 0.0  # duty cycles of the earlier runs of the unit

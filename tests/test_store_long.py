@@ -74,8 +74,10 @@ def test_a_crash_between_merge_and_delete_counts_each_row_once(store: RunStore) 
     writer = record(store, 3, 10, finish=False)
     # As if the process died after renaming a merged file into place, before deleting its sources.
     store_module._copy_rows(
-        [writer.run_dir / f"part-{k:06d}.parquet" for k in range(2)],
-        writer.run_dir / "merged-000000-000001.parquet",
+        store.data,
+        [str(writer.run_dir / f"part-{k:06d}.parquet") for k in range(2)],
+        writer.run_id,
+        "merged-000000-000001.parquet",
         {},
     )
     assert len(files(writer)) == 4

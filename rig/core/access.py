@@ -1,4 +1,4 @@
-"""Who may do what: API keys and the audit log, kept in the store's catalog (`catalog.sqlite`).
+"""Who may do what: API keys and the audit log, kept in the store's catalog (tables `keys`, `audit`).
 
 A key is a random token shown once at creation and stored only as its SHA-256 (a high-entropy token
 needs no slow hash); a presented token is checked against every live key with a constant-time compare.
@@ -9,42 +9,24 @@ share these functions.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import hmac
 import re
 import secrets
-import sqlite3
-from collections.abc import Iterator
 from datetime import UTC, datetime
 from enum import StrEnum
 from typing import Any
 
+import sqlalchemy as sa
 from pydantic import BaseModel, Field
 
 from model.errors import UserInputError
+from rig.catalog import audit as audit_table
+from rig.catalog import keys as keys_table
 from rig.store import RunStore
 
 KEY_BYTES = 32  # 256 bits of randomness: a SHA-256 of it cannot be searched
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._@-]{0,63}")
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS keys (
-    name    TEXT NOT NULL UNIQUE,
-    role    TEXT NOT NULL,
-    hash    TEXT NOT NULL,
-    created TEXT NOT NULL,
-    revoked TEXT
-);
-CREATE TABLE IF NOT EXISTS audit (
-    time   TEXT NOT NULL,
-    who    TEXT,
-    role   TEXT,
-    action TEXT NOT NULL,
-    target TEXT,
-    detail TEXT
-);
-"""
 
 
 class Role(StrEnum):
@@ -91,18 +73,6 @@ def _hash(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 
 
-@contextlib.contextmanager
-def _db(store: RunStore) -> Iterator[sqlite3.Connection]:
-    db = sqlite3.connect(store.catalog_path, timeout=30.0)
-    db.row_factory = sqlite3.Row
-    try:
-        with db:
-            db.executescript(_SCHEMA)
-            yield db
-    finally:
-        db.close()
-
-
 def create_key(store: RunStore, role: Role | str, name: str | None = None) -> str:
     """A new key of `role` named `name` (default `<role>-<n>`); returns the token, shown only this once."""
     try:
@@ -110,9 +80,10 @@ def create_key(store: RunStore, role: Role | str, name: str | None = None) -> st
     except ValueError:
         raise UserInputError(f"role {role!r}: use one of {', '.join(Role)}") from None
     token = secrets.token_urlsafe(KEY_BYTES)
-    with _db(store) as db:
+    keys = keys_table
+    with store.catalog.write() as db:
         if name is None:
-            taken = {row["name"] for row in db.execute("SELECT name FROM keys")}
+            taken = set(db.execute(sa.select(keys.c.name)).scalars())
             n = 1
             while f"{role}-{n}" in taken:
                 n += 1
@@ -122,36 +93,41 @@ def create_key(store: RunStore, role: Role | str, name: str | None = None) -> st
                 f"key name {name!r}: 1-64 letters, digits, '.', '_', '@' or '-',"
                 " starting with a letter or digit"
             )
-        try:
-            db.execute(
-                "INSERT INTO keys (name, role, hash, created) VALUES (?, ?, ?, ?)",
-                (name, role.value, _hash(token), _now()),
-            )
-        except sqlite3.IntegrityError:
-            raise UserInputError(f"key name {name!r} is taken (names stay taken after a revoke)") from None
+        exists = db.execute(sa.select(keys.c.name).where(keys.c.name == name)).first() is not None
+        if exists:
+            raise UserInputError(f"key name {name!r} is taken (names stay taken after a revoke)")
+        db.execute(keys.insert().values(name=name, role=role.value, hash=_hash(token), created=_now()))
     return token
 
 
 def list_keys(store: RunStore) -> list[KeyInfo]:
     """Every key, live and revoked, oldest first."""
-    with _db(store) as db:
-        rows = db.execute("SELECT name, role, created, revoked FROM keys ORDER BY created, name").fetchall()
-    return [KeyInfo(**dict(row)) for row in rows]
+    keys = keys_table
+    query = sa.select(keys.c.name, keys.c.role, keys.c.created, keys.c.revoked).order_by(
+        keys.c.created, keys.c.name
+    )
+    with store.catalog.read() as db:
+        rows = db.execute(query).fetchall()
+    return [KeyInfo(**dict(row._mapping)) for row in rows]
 
 
 def has_keys(store: RunStore) -> bool:
     """Whether any live key exists (the service makes an admin key on a store without one)."""
-    with _db(store) as db:
-        return db.execute("SELECT 1 FROM keys WHERE revoked IS NULL LIMIT 1").fetchone() is not None
+    keys = keys_table
+    with store.catalog.read() as db:
+        return db.execute(sa.select(keys.c.name).where(keys.c.revoked.is_(None)).limit(1)).first() is not None
 
 
 def revoke_key(store: RunStore, name: str) -> KeyInfo:
     """Revoke a key by name: it authenticates no more (its name stays in the log and the list)."""
-    with _db(store) as db:
-        row = db.execute("SELECT name FROM keys WHERE name = ?", (name,)).fetchone()
+    keys = keys_table
+    with store.catalog.write() as db:
+        row = db.execute(sa.select(keys.c.name).where(keys.c.name == name)).first()
         if row is None:
             raise UserInputError(f"unknown key name {name!r}")
-        db.execute("UPDATE keys SET revoked = COALESCE(revoked, ?) WHERE name = ?", (_now(), name))
+        db.execute(
+            keys.update().where(keys.c.name == name).values(revoked=sa.func.coalesce(keys.c.revoked, _now()))
+        )
     return next(k for k in list_keys(store) if k.name == name)
 
 
@@ -160,12 +136,15 @@ def authenticate(store: RunStore, token: str) -> tuple[str, Role] | None:
     if not token:
         return None
     digest = _hash(token)
-    with _db(store) as db:
-        rows = db.execute("SELECT name, role, hash FROM keys WHERE revoked IS NULL").fetchall()
+    keys = keys_table
+    with store.catalog.read() as db:
+        rows = db.execute(
+            sa.select(keys.c.name, keys.c.role, keys.c.hash).where(keys.c.revoked.is_(None))
+        ).fetchall()
     found = None
     for row in rows:  # compare with every key, so the time taken says nothing about which matched
-        if hmac.compare_digest(row["hash"], digest):
-            found = (row["name"], Role(row["role"]))
+        if hmac.compare_digest(row.hash, digest):
+            found = (row.name, Role(row.role))
     return found
 
 
@@ -178,18 +157,24 @@ def audit(
     detail: str | None = None,
 ) -> None:
     """Append one line to the audit log."""
-    with _db(store) as db:
+    with store.catalog.write() as db:
         db.execute(
-            "INSERT INTO audit (time, who, role, action, target, detail) VALUES (?, ?, ?, ?, ?, ?)",
-            (_now(), who, None if role is None else str(role), action, target, detail),
+            audit_table.insert().values(
+                time=_now(),
+                who=who,
+                role=None if role is None else str(role),
+                action=action,
+                target=target,
+                detail=detail,
+            )
         )
 
 
 def audit_log(store: RunStore, limit: int = 1000) -> list[AuditEntry]:
     """The newest `limit` lines of the audit log, oldest first."""
-    with _db(store) as db:
-        rows = db.execute(
-            "SELECT time, who, role, action, target, detail FROM audit ORDER BY rowid DESC LIMIT ?", (limit,)
-        ).fetchall()
-    entries: list[dict[str, Any]] = [dict(row) for row in reversed(rows)]
+    a = audit_table
+    query = sa.select(a.c.time, a.c.who, a.c.role, a.c.action, a.c.target, a.c.detail)
+    with store.catalog.read() as db:
+        rows = db.execute(query.order_by(a.c.id.desc()).limit(limit)).fetchall()
+    entries: list[dict[str, Any]] = [dict(row._mapping) for row in reversed(rows)]
     return [AuditEntry(**entry) for entry in entries]

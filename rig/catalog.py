@@ -1,0 +1,292 @@
+"""The catalog behind a database URL: the tables of runs, checkpoints, tags, keys, audit and batch fits.
+
+SQLite in the store's home (`catalog.sqlite`) is the default, with nothing to install; `HDRIG_CATALOG`
+(`postgresql://user@host/db`, or any SQLAlchemy URL) puts the catalog of many rigs in one database.
+Queries are SQLAlchemy Core on the tables below; the schema is made and upgraded by Alembic migrations
+(`rig/catalog_migrations/versions/`), run when a store opens a catalog older than this code, under a lock
+(an advisory lock on PostgreSQL, SQLite's write lock), so services starting together migrate once. A
+catalog from before the migrations (no `alembic_version` table) is upgraded in place: the first migration
+creates only what is missing.
+
+Writes on SQLite take the write lock when they begin (`BEGIN IMMEDIATE`), so two writers wait for each
+other (busy timeout 30 s) instead of one failing on a read-then-write; readers never wait (WAL mode).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sqlite3
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy import event
+from sqlalchemy.engine import URL, Connection, Engine, make_url
+
+from model.errors import UserInputError
+
+MIGRATIONS = Path(__file__).with_name("catalog_migrations")
+CATALOG_FILE = "catalog.sqlite"
+BUSY_TIMEOUT_S = 30.0  # a writer waits this long for another's transaction before it fails
+
+STORED_STATUSES = ("running", "complete", "aborted", "interrupted")
+"""The statuses a run in the catalog can have (`queued` and `failed` runs never reach the store)."""
+
+metadata = sa.MetaData()
+
+runs = sa.Table(
+    "runs",
+    metadata,
+    sa.Column("id", sa.Text, primary_key=True),
+    sa.Column("experiment", sa.Text, nullable=False),
+    sa.Column("rig", sa.Text, nullable=False),
+    sa.Column("model_name", sa.Text),
+    sa.Column("model_hash", sa.Text),
+    sa.Column("status", sa.Text, nullable=False),
+    sa.Column("reason", sa.Text),
+    sa.Column("started", sa.Text, nullable=False),
+    sa.Column("ended", sa.Text),
+    sa.Column("samples", sa.BigInteger, nullable=False, server_default="0"),
+    sa.Column("metrics", sa.Text, nullable=False, server_default="{}"),
+    sa.Column("path", sa.Text, nullable=False),
+    sa.Column("meta", sa.Text, nullable=False, server_default="{}"),
+    sa.Column("pid", sa.Integer),
+    sa.Column("host", sa.Text),
+    sa.Column("pid_started", sa.Text),
+    sa.Column("analysis", sa.Text),
+    sa.Column("unit", sa.Text),  # the gear's serial number (the rig file's `unit:`, or the run's own)
+    sa.Column("operator", sa.Text),  # the API key's name, or the OS user of a command line
+)
+
+checkpoints = sa.Table(
+    "checkpoints",
+    metadata,
+    sa.Column("run_id", sa.Text, sa.ForeignKey("runs.id"), primary_key=True),
+    sa.Column("idx", sa.Integer, primary_key=True),
+    sa.Column("unit", sa.Text),
+    sa.Column("t_s", sa.Float, nullable=False),
+    sa.Column("estimates", sa.Text, nullable=False),
+)
+
+run_tags = sa.Table(
+    "run_tags",
+    metadata,
+    sa.Column("run_id", sa.Text, sa.ForeignKey("runs.id"), primary_key=True),
+    sa.Column("tag", sa.Text, primary_key=True),
+)
+
+keys = sa.Table(
+    "keys",
+    metadata,
+    sa.Column("name", sa.Text, nullable=False, unique=True),
+    sa.Column("role", sa.Text, nullable=False),
+    sa.Column("hash", sa.Text, nullable=False),
+    sa.Column("created", sa.Text, nullable=False),
+    sa.Column("revoked", sa.Text),
+)
+
+audit = sa.Table(
+    "audit",
+    metadata,
+    sa.Column("id", sa.BigInteger().with_variant(sa.Integer, "sqlite"), primary_key=True, autoincrement=True),
+    sa.Column("time", sa.Text, nullable=False),
+    sa.Column("who", sa.Text),
+    sa.Column("role", sa.Text),
+    sa.Column("action", sa.Text, nullable=False),
+    sa.Column("target", sa.Text),
+    sa.Column("detail", sa.Text),
+)
+
+unit_fits = sa.Table(
+    "unit_fits",
+    metadata,
+    sa.Column("batch_id", sa.Text, primary_key=True),
+    sa.Column("unit", sa.Text, primary_key=True),
+    sa.Column("created", sa.Text, nullable=False),
+    sa.Column("status", sa.Text, nullable=False),  # complete | failed
+    sa.Column("runs", sa.Text, nullable=False),  # JSON list of the run ids fitted
+    sa.Column("result", sa.Text),  # JSON: the fit document (`hdrig fit --json`)
+    sa.Column("error", sa.Text),  # one line, when failed
+)
+
+
+class StoreError(UserInputError):
+    """The store's folder, data or catalog cannot be used (not writable, unreachable, a damaged catalog, a
+    bad URL): one line naming it."""
+
+
+def default_url(home: Path) -> str:
+    """The catalog's URL: `$HDRIG_CATALOG` when set, else SQLite in the store's home."""
+    return os.environ.get("HDRIG_CATALOG") or f"sqlite:///{home / CATALOG_FILE}"
+
+
+def _parse(url: str) -> URL:
+    try:
+        parsed = make_url(url)
+    except sa.exc.ArgumentError:
+        raise StoreError(
+            f"catalog URL {url!r}: not a database URL (sqlite:///PATH, postgresql://...)"
+        ) from None
+    if parsed.drivername in ("postgresql", "postgres"):
+        parsed = parsed.set(drivername="postgresql+psycopg")  # psycopg 3, not SQLAlchemy's psycopg2 default
+    return parsed
+
+
+_engines: dict[str, Engine] = {}
+_engines_lock = threading.Lock()
+_migrated: set[str] = set()
+
+
+def _forget_engines() -> None:
+    # A forked child must not share its parent's open connections: it opens its own.
+    for engine in _engines.values():
+        engine.dispose(close=False)
+    _engines.clear()
+    _migrated.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_engines)
+
+
+def _sqlite_engine(url: URL) -> Engine:
+    engine = sa.create_engine(url, connect_args={"timeout": BUSY_TIMEOUT_S, "check_same_thread": False})
+
+    @event.listens_for(engine, "connect")
+    def _connect(dbapi: Any, _record: Any) -> None:
+        dbapi.isolation_level = None  # transactions are begun below, with the lock they need
+        dbapi.execute("PRAGMA journal_mode=WAL")  # readers never block the writer
+
+    @event.listens_for(engine, "begin")
+    def _begin(conn: Connection) -> None:
+        write = conn.get_execution_options().get("catalog_write", False)
+        conn.exec_driver_sql("BEGIN IMMEDIATE" if write else "BEGIN")
+
+    return engine
+
+
+def _engine(url: URL) -> Engine:
+    key = url.render_as_string(hide_password=False)
+    with _engines_lock:
+        engine = _engines.get(key)
+        if engine is None:
+            if url.get_backend_name() == "sqlite":
+                engine = _sqlite_engine(url)
+            else:
+                engine = sa.create_engine(url, pool_pre_ping=True)
+            _engines[key] = engine
+        return engine
+
+
+class Catalog:
+    """One catalog database, by URL; `write()` and `read()` are its transactions."""
+
+    def __init__(self, url: str) -> None:
+        self.url = _parse(url)
+        self.is_sqlite = self.url.get_backend_name() == "sqlite"
+        self.where = self.url.database if self.is_sqlite else self.url.render_as_string(hide_password=True)
+        """The catalog as told in messages: SQLite's file, else the URL without its password."""
+        if self.is_sqlite and self.url.database not in (None, "", ":memory:"):
+            Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
+        self.engine = _engine(self.url)
+        self._migrate()
+
+    @contextlib.contextmanager
+    def _transaction(self, write: bool) -> Iterator[Connection]:
+        try:
+            conn = self.engine.connect()
+        except sa.exc.DBAPIError as exc:
+            raise self._told(exc, connecting=True) from None
+        try:
+            if write:
+                conn = conn.execution_options(catalog_write=True)
+            with conn.begin():
+                yield conn
+        except sa.exc.DBAPIError as exc:
+            told = self._told(exc, connecting=False)
+            if told is None:
+                raise  # integrity, locking...: the caller's to handle, or a bug
+            raise told from None
+        finally:
+            conn.close()
+
+    def write(self) -> contextlib.AbstractContextManager[Connection]:
+        """A transaction that writes: committed at the end of the block, rolled back on an exception."""
+        return self._transaction(write=True)
+
+    def read(self) -> contextlib.AbstractContextManager[Connection]:
+        """A transaction that only reads (on SQLite, it never waits for a writer)."""
+        return self._transaction(write=False)
+
+    def _told(self, exc: sa.exc.DBAPIError, connecting: bool) -> Any:
+        """The one-line StoreError for a catalog that cannot be used; None for any other error."""
+        orig = exc.orig
+        if self.is_sqlite and type(orig) is sqlite3.DatabaseError:
+            # A damaged file: told as such; the runs' data stay in runs/<id>/ (Parquet, with their metadata).
+            return StoreError(
+                f"{self.where}: the run catalog is damaged ({orig}); move it aside and the store"
+                " starts a new one (the runs' data files in runs/ are untouched)"
+            )
+        if connecting or (
+            not self.is_sqlite and isinstance(exc, sa.exc.OperationalError) and exc.connection_invalidated
+        ):
+            first = str(orig).strip().splitlines()[0] if str(orig).strip() else type(orig).__name__
+            return StoreError(f"{self.where}: cannot open the run catalog ({first})")
+        return None
+
+    # ---- migrations ---------------------------------------------------------------------------
+
+    def _version(self) -> str | None:
+        with self.read() as conn:
+            if not sa.inspect(conn).has_table("alembic_version"):
+                return None
+            return conn.execute(sa.text("SELECT version_num FROM alembic_version")).scalar()
+
+    def _migrate(self) -> None:
+        """Bring the catalog's schema to this code's (once per process and URL; a no-op when current)."""
+        key = self.url.render_as_string(hide_password=False)
+        if key in _migrated:
+            return
+        head = head_revision()
+        if self._version() != head:
+            from alembic import command
+
+            config = _alembic_config()
+            with self.write() as conn:
+                if not self.is_sqlite:
+                    # One migrating process at a time; the others wait, then find the schema current.
+                    conn.execute(sa.text("SELECT pg_advisory_xact_lock(:k)"), {"k": _MIGRATION_LOCK})
+                config.attributes["connection"] = conn
+                command.upgrade(config, "head")
+        _migrated.add(key)
+
+
+_MIGRATION_LOCK = 0x68647269  # 'hdri': the advisory lock key of hdrig's migrations
+_head: list[str] = []
+
+
+def _alembic_config() -> Any:
+    from alembic.config import Config
+
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    return config
+
+
+def head_revision() -> str:
+    """The newest migration's revision: the schema this code reads and writes."""
+    if not _head:
+        from alembic.script import ScriptDirectory
+
+        head = ScriptDirectory.from_config(_alembic_config()).get_current_head()
+        assert head is not None, f"no migrations in {MIGRATIONS}"
+        _head.append(head)
+    return _head[0]
+
+
+def is_unique_violation(exc: BaseException) -> bool:
+    """Whether an error is a duplicate key (a run id or key name taken), on any database."""
+    return isinstance(exc, sa.exc.IntegrityError)

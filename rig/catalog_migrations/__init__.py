@@ -1,0 +1,1 @@
+"""Alembic migrations of the run catalog (`rig.catalog`): one file per schema change in `versions/`."""
