@@ -9,6 +9,9 @@ import pytest
 from model.params import HarmonicDriveModel, load_model
 from rig import realtime
 
+# The fleet's real parts on loopback: PostgreSQL, an S3 API, a Dask LocalCluster (skipped, or failed in CI).
+pytest_plugins = ["hdrig_testing.fleet_fixtures"]
+
 
 @pytest.fixture(scope="session")
 def seed() -> HarmonicDriveModel:
