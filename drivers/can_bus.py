@@ -13,6 +13,7 @@ import copy
 import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import cast
 
@@ -106,11 +107,18 @@ class PeriodicFrame(PeriodicMessageTask):
 
     Unlike python-can's task (which canopen uses for heartbeats and SYNC), `stop()` waits for the
     thread to end, and every frame passes the network's recorder. If this process hangs or dies, the
-    frame stops: what a heartbeat should do.
+    frame stops: what a heartbeat should do. With a `gate`, a period whose gate says False sends
+    nothing (a heartbeat withheld while the control loop it vouches for is hung).
     """
 
     def __init__(
-        self, network: canopen.Network, can_id: int, data: bytes, period: float, remote: bool
+        self,
+        network: canopen.Network,
+        can_id: int,
+        data: bytes,
+        period: float,
+        remote: bool,
+        gate: Callable[[], bool] | None = None,
     ) -> None:
         # PeriodicMessageTask's constructor starts a python-can task: deliberately not called.
         self.bus = network.bus
@@ -119,6 +127,7 @@ class PeriodicFrame(PeriodicMessageTask):
             arbitration_id=can_id, data=data, is_extended_id=can_id > 0x7FF, is_remote_frame=remote
         )
         self._network = network
+        self._gate = gate
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"hdrig periodic 0x{can_id:03X}", daemon=True)
         self._thread.start()
@@ -129,7 +138,8 @@ class PeriodicFrame(PeriodicMessageTask):
         while True:
             msg = self.msg
             try:
-                self._network.send_message(msg.arbitration_id, bytes(msg.data), msg.is_remote_frame)
+                if self._gate is None or self._gate():
+                    self._network.send_message(msg.arbitration_id, bytes(msg.data), msg.is_remote_frame)
                 failing = False
             except (can.CanError, RuntimeError) as exc:
                 if not failing:
@@ -176,5 +186,12 @@ class RecordedNetwork(canopen.Network):
         )
         self.recorder.on_message_sent(msg)
 
-    def send_periodic(self, can_id: int, data: bytes, period: float, remote: bool = False) -> PeriodicFrame:
-        return PeriodicFrame(self, can_id, bytes(data), period, remote)
+    def send_periodic(
+        self,
+        can_id: int,
+        data: bytes,
+        period: float,
+        remote: bool = False,
+        gate: Callable[[], bool] | None = None,
+    ) -> PeriodicFrame:
+        return PeriodicFrame(self, can_id, bytes(data), period, remote, gate)

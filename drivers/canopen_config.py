@@ -99,6 +99,12 @@ class CanopenSettings(BusSettings):
     host_heartbeat_timeout_ms: int = Field(
         default=200, ge=1, le=65535, description="drive side (0x1016): it stops after this long without one"
     )
+    loop_timeout_ms: int = Field(
+        default=500,
+        gt=0,
+        description="a powered drive not cycled for this long (a hung control loop) gets no more host"
+        " heartbeats or guarding, so its own watchdog stops it host_heartbeat_timeout_ms later",
+    )
     sync_timeout_s: float | None = Field(
         default=None, gt=0, description="wait for the TPDOs answering a SYNC; default: 10 cycles, ≥ 20 ms"
     )

@@ -6,6 +6,11 @@ around what canopen 2.4 leaves out: the PDOs are mapped from the driver's own pl
 `SyncProducer` thread, so each cycle is one RPDO, one SYNC and the TPDOs answering that very SYNC;
 the drive's heartbeat is watched here, since canopen's master has no heartbeat-consumer timeout.
 
+The host's heartbeat (or node guarding) vouches for the control loop, not only for the process: while
+the drive is powered, a period goes out only if a cycle was sent within `loop_timeout_ms`. A loop that
+hangs in a live process (a stuck hook, a lock, a swap storm) so falls silent too, and the drive's own
+watchdog stops it `host_heartbeat_timeout_ms` later, as if the host had died.
+
 The driver knows nothing of the rig interface's segments: a rig backend pairs it with its sensors,
 calls `configure(mode)` and then `cycle(target)` once per sample, and asks `faults()` for its health.
 """
@@ -168,6 +173,8 @@ class CanopenServo:
         self._quick_stop_latched = False
         self._next_sync_t_s: float | None = None
         self._last: Feedback | None = None
+        self._cycled_t_s: float | None = None  # when the last cycle went out: the loop's "alive" stamp
+        self._stalled_s = 0.0  # the longest gap between cycles of the powered drive beyond loop_timeout
 
     @classmethod
     def from_rig_config(cls, config: RigConfig) -> CanopenServo:
@@ -215,7 +222,9 @@ class CanopenServo:
             # From a thread of this process: if it hangs or dies, the drive's consumer stops the drive.
             period_s = self.settings.host_heartbeat_ms / 1000.0
             cob_id = 0x700 + self.settings.host_node_id
-            self._heartbeat = network.send_periodic(cob_id, HOST_HEARTBEAT_STATE, period_s)
+            self._heartbeat = network.send_periodic(
+                cob_id, HOST_HEARTBEAT_STATE, period_s, gate=self._loop_alive
+            )
         self.scaling = resolve_scaling(self.settings.scaling, self.od, self._read)
         self.modes = DriveModes.of(self.od, self._read_or_none)
         self._plan, self.mode, self.choice = None, None, None  # RPDO 1 is off until configure()
@@ -224,7 +233,8 @@ class CanopenServo:
         if self.watchdog == "node guarding" and self._guard is None:
             # Guarding requests (RTR) from this process: without them the drive's life guard trips.
             guard_s = guarding(self.settings)[0] / 1000.0
-            self._guard = network.send_periodic(0x700 + self.settings.node_id, b"", guard_s, remote=True)
+            guard_id = 0x700 + self.settings.node_id
+            self._guard = network.send_periodic(guard_id, b"", guard_s, remote=True, gate=self._loop_alive)
         self._start_node()
 
     def choose(self, program: ControlMode) -> ModeChoice:
@@ -317,6 +327,7 @@ class CanopenServo:
         """
         self._plan_or_raise()
         self._quick_stop_latched = False
+        self._stalled_s = 0.0
         feedback = self._walk_to(State.OPERATION_ENABLED, timeout_s)
         self._controlword = CONTROLWORD[Command.ENABLE_OPERATION]
         return feedback
@@ -490,6 +501,7 @@ class CanopenServo:
             network.send_message(SYNC_COB_ID, b"")
         except can.CanError as exc:  # the bus failed under a working drive: a fault, not a setting
             raise CanopenServoError(f"node {self.settings.node_id}: cycle not sent: {exc}") from exc
+        self._stamp_cycle(t_sync)
         with self._rx:
             answered = self._rx.wait_for(
                 lambda: all(c > b for c, b in zip(self._tpdo_counts, before, strict=True)),
@@ -507,6 +519,31 @@ class CanopenServo:
         feedback = self._feedback(t_sync, t_answer - t_sync, values1, values2)
         self._last = feedback
         return feedback
+
+    # --- the loop's watchdog ------------------------------------------------------------------------
+
+    def _powered(self) -> bool:
+        """Whether the host holds the drive in OPERATION ENABLED (and has not latched a quick stop)."""
+        return self._controlword == CONTROLWORD[Command.ENABLE_OPERATION] and not self._quick_stop_latched
+
+    def _loop_alive(self) -> bool:
+        """The host heartbeat's gate: always open for an unpowered drive; for a powered one, only while
+        the control loop has sent a cycle within `loop_timeout_ms`."""
+        cycled = self._cycled_t_s
+        if not self._powered() or cycled is None:
+            return True
+        return time.monotonic() - cycled <= self.settings.loop_timeout_ms / 1000.0
+
+    def _stamp_cycle(self, t_s: float) -> None:
+        """The loop is alive at `t_s`; a gap beyond `loop_timeout_ms` under power is kept for `faults()`."""
+        before, self._cycled_t_s = self._cycled_t_s, t_s
+        if before is not None and self._powered() and t_s - before > self.settings.loop_timeout_ms / 1000.0:
+            self._stalled_s = max(self._stalled_s, t_s - before)
+            logger.error(
+                "node %d: control loop stalled %.0f ms under power",
+                self.settings.node_id,
+                (t_s - before) * 1e3,
+            )
 
     def _wait_for_period(self) -> None:
         now = time.monotonic()
@@ -548,6 +585,11 @@ class CanopenServo:
         last = self._last
         if last is not None and last.faulted:
             faults.append(f"drive in {last.state} (statusword 0x{last.statusword:04X})")
+        if self._stalled_s:
+            faults.append(
+                f"host control loop stalled for {self._stalled_s * 1e3:.0f} ms under power (its heartbeat"
+                f" withheld after loop_timeout_ms {self.settings.loop_timeout_ms})"
+            )
         heard = self._drive_heartbeat_t_s
         if heard is not None:
             silent_ms = (time.monotonic() - heard) * 1e3
