@@ -6,6 +6,7 @@ and written by `rig.runfile`; this module knows nothing of files.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,6 +30,23 @@ KNOWN_COLUMNS = {
     "i_a": "A",
 }
 """The docs/INTERFACE.md columns and their units. Runs may carry further columns."""
+
+PLAUSIBLE_MAGNITUDE = {
+    "t": 1e10,  # s: Unix-epoch time stamps (1.7e9 s) pass
+    "u": 1e4,  # V
+    "i_cmd": 1e4,  # A
+    "i_a": 1e4,  # A
+    "tau_m": 1e5,  # N·m
+    "tau_ext": 1e6,  # N·m: the largest harmonic drives hold ~1e4 N·m at the output
+    "theta_m": 1e9,  # rad: 10 h at 600 rad/s is 2e7 rad
+    "theta_l": 1e9,  # rad
+    "omega_m": 1e5,  # rad/s: ~1 million rpm
+    "omega_l": 1e5,  # rad/s
+}
+"""Beyond these magnitudes a known column's value is no measurement of a rig but a unit error or a
+damaged cell (a current of 1e300 A): refused, not fitted. Far above any rig, so no real run trips them."""
+MAX_SAMPLE_RATE_HZ = 1e7
+"""A `sample_rate_hz` in a run's metadata must lie in (0, this]."""
 
 
 class RunFormatError(UserInputError):
@@ -82,15 +100,12 @@ class Run:
         n = len(self.columns["t"])
         if n < 2:
             raise RunFormatError(f"{where}: needs at least 2 samples, has {n}")
+        check_sample_rate(self.meta, where)
         for name, values in self.columns.items():
             arr = np.asarray(values, dtype=np.float64)
             if arr.shape != (n,):
                 raise RunFormatError(f"{where}: column '{name}' has {arr.shape[0]} rows, 't' has {n}")
-            bad = np.flatnonzero(~np.isfinite(arr))
-            if bad.size:
-                raise RunFormatError(
-                    f"{where}: column '{name}' has a non-finite value at row {int(bad[0])} ({arr[bad[0]]})"
-                )
+            check_values(where, name, arr)
             self.columns[name] = arr
         steps = np.diff(self.columns["t"])
         bad = np.flatnonzero(steps <= 0)
@@ -109,3 +124,39 @@ class Run:
         for pos, vel in (("theta_m", "omega_m"), ("theta_l", "omega_l")):
             if pos in self.columns and vel not in self.columns:
                 self.columns[vel] = np.gradient(self.columns[pos], t)
+
+
+def check_values(
+    where: str, name: str, values: np.ndarray, first_row: int = 0, plausible: bool = True
+) -> None:
+    """Refuse a column's non-finite values and (with `plausible`, as a run is read) a known column's
+    values beyond its PLAUSIBLE_MAGNITUDE; one line naming the column, the row (counted from
+    `first_row`) and the limit."""
+    bad = np.flatnonzero(~np.isfinite(values))
+    if bad.size:
+        row = first_row + int(bad[0])
+        raise RunFormatError(
+            f"{where}: column '{name}' has a non-finite value at row {row} ({values[bad[0]]})"
+        )
+    limit = PLAUSIBLE_MAGNITUDE.get(name) if plausible else None
+    if limit is not None:
+        bad = np.flatnonzero(np.abs(values) > limit)
+        if bad.size:
+            row, unit = first_row + int(bad[0]), KNOWN_COLUMNS[name]
+            raise RunFormatError(
+                f"{where}: column '{name}' row {row} is {values[bad[0]]:g} {unit}, beyond any rig"
+                f" (|{name}| ≤ {limit:g} {unit}): a unit error or a damaged value"
+            )
+
+
+def check_sample_rate(meta: dict[str, Any], where: str) -> None:
+    """A `sample_rate_hz` in the metadata, if any, is a number in (0, MAX_SAMPLE_RATE_HZ] Hz."""
+    if "sample_rate_hz" not in meta:
+        return
+    rate = meta["sample_rate_hz"]
+    number = isinstance(rate, (int, float)) and not isinstance(rate, bool)
+    if not (number and math.isfinite(rate) and 0 < rate <= MAX_SAMPLE_RATE_HZ):
+        raise RunFormatError(
+            f"{where}: metadata sample_rate_hz is {rate!r}; it must be a number of Hz in"
+            f" (0, {MAX_SAMPLE_RATE_HZ:g}]"
+        )

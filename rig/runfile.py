@@ -24,7 +24,7 @@ import pyarrow.csv as pa_csv
 import pyarrow.parquet as pq
 
 from model.errors import UserInputError
-from model.run import KNOWN_COLUMNS, Run, RunFormatError
+from model.run import KNOWN_COLUMNS, Run, RunFormatError, check_values
 
 WRITE_SUFFIXES = (".parquet", ".csv", ".mat")
 READ_SUFFIXES = (".parquet", ".csv")
@@ -184,12 +184,8 @@ class StreamCheck:
 
     def block(self, columns: dict[str, np.ndarray]) -> None:
         for name, values in columns.items():
-            bad = np.flatnonzero(~np.isfinite(values))
-            if bad.size:
-                row = self.rows + int(bad[0])
-                raise RunFormatError(
-                    f"{self.where}: column '{name}' has a non-finite value at row {row} ({values[bad[0]]})"
-                )
+            # Finite only: what a simulation writes is whatever the model made of its input.
+            check_values(self.where, name, values, self.rows, plausible=False)
         t = columns.get("t")
         if t is not None and t.size:
             steps = np.diff(t)
@@ -499,6 +495,14 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
         line = raw.count(b"\n", 0, e.start) + 1
         raise RunFileError(f"{path}: line {line}: not UTF-8 text (byte {raw[e.start]:#04x})") from e
     names = _csv_header(path, text)
+    if len(names) == 1:
+        other = next((sep for sep in (";", "\t", "|") if sep in names[0]), None)
+        if other is not None:
+            shown = {";": "';'", "\t": "a tab", "|": "'|'"}[other]
+            raise RunFileError(
+                f"{path}: line 1 is one column {names[0]!r}: the columns look separated by {shown};"
+                " a run CSV is comma-separated with '.' decimals"
+            )
     # Arrow parses fast; the stdlib reader is only used to say where a file Arrow rejects goes wrong.
     options = pa_csv.ConvertOptions(
         column_types=dict.fromkeys(names, pa.float64()),

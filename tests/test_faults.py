@@ -22,9 +22,12 @@ import numpy as np
 import pytest
 import yaml
 
+from drivers.cia402 import EMCY_HEARTBEAT, State, decode_statusword
 from drivers.hardware_rig import RAW_CAN_LOG
+from model.errors import UserInputError
 from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.interface import Block
+from rig.runfile import read_run
 from rig.runner import RunHooks, run_experiment
 from rig.status import RunStatus
 from rig.store import RunStore
@@ -181,6 +184,64 @@ def test_sigterm_and_sighup_quick_stop_the_drive_then_keep_the_run_aborted(
     assert (entry["status"], entry["reason"]) == ("aborted", "aborted: quick stop requested")
     assert entry["samples"] >= flushed and len(RunStore(home).read(entry["id"])) == entry["samples"]
     assert stopped_in_the_can_log(Path(entry["path"]).parent)
+
+
+STALL_S = 3.0  # the loop's thread sleeps this long mid-run, the drive enabled and turning
+EMCY, HOST_HEARTBEAT = 0x080 + NODE, 0x700 + 127  # the drive's EMCY; the host's heartbeat (host_node_id)
+TPDO1 = 0x180 + NODE  # the statusword first (drivers.canopen_config.tpdo_layouts)
+
+
+@pytest.mark.usefixtures("quiet_heap")
+def test_a_stalled_control_loop_is_stopped_by_the_drives_watchdog(tmp_path: Path) -> None:
+    """The loop's thread hangs (a hook that sleeps in it) with the process alive: the host's heartbeat
+    is fed by the cycle, so it falls silent and the drive twin's consumer (0x1016) faults the drive
+    before the loop comes back; the run then ends aborted with that fault, its rows kept."""
+    config = load_rig_config("virtual-can").model_copy(update={"pace": "realtime"})
+    settings = config.extra["canopen"]
+    loop_timeout_s = settings["loop_timeout_ms"] / 1000.0
+    consumer_timeout_s = settings["host_heartbeat_timeout_ms"] / 1000.0
+    assert loop_timeout_s + consumer_timeout_s < STALL_S  # else the stall would not be seen
+    store = RunStore(tmp_path / "home")
+    blocks: list[int] = []
+
+    def on_block(run_id: str, block: Block) -> None:
+        blocks.append(len(block["t"]))
+        if len(blocks) == 3:  # mid-program: the settle is done and the sweep's first speed turns
+            time.sleep(STALL_S)
+
+    outcome = run_experiment("speed-sweep", config, store=store, hooks=RunHooks(on_block=on_block))
+
+    assert outcome.status == RunStatus.ABORTED
+    assert outcome.reason is not None and "EMCY 0x8130" in outcome.reason, outcome.reason
+    assert "control loop stalled" in outcome.reason, outcome.reason
+    (entry,) = store.list_runs()
+    assert entry["samples"] == sum(blocks) == len(store.read(entry["id"]))
+
+    # The raw CAN log: the last RPDO before the stall, the host's heartbeats, the drive's EMCY and FAULT.
+    assert outcome.run_dir is not None
+    frames = list(can.BLFReader(outcome.run_dir / RAW_CAN_LOG))
+    rpdo_times = [m.timestamp for m in frames if m.arbitration_id == RPDO]
+    gaps = np.diff(rpdo_times)
+    stalled_at = rpdo_times[int(np.argmax(gaps))]  # the last cycle before the stall
+    resumed_at = stalled_at + float(np.max(gaps))
+    assert np.max(gaps) >= STALL_S
+    emcy = [m for m in frames if m.arbitration_id == EMCY and m.timestamp > stalled_at]
+    assert emcy and int.from_bytes(emcy[0].data[:2], "little") == EMCY_HEARTBEAT
+    # The drive stopped by itself while the loop still slept: after its consumer's timeout without a
+    # heartbeat, and the heartbeat withheld once the loop had not cycled for loop_timeout_ms. (Its
+    # timestamps are the host's wall clock at send and receive, in one process: no offset between them.)
+    reacted_s = emcy[0].timestamp - stalled_at
+    assert consumer_timeout_s <= reacted_s < resumed_at - stalled_at, reacted_s
+    heartbeats = [m.timestamp for m in frames if m.arbitration_id == HOST_HEARTBEAT]
+    silent = [t for t in heartbeats if stalled_at + loop_timeout_s + 0.1 < t < emcy[0].timestamp]
+    assert not silent, "the host's heartbeat went on while the loop was stalled"
+    statuswords = [
+        int.from_bytes(m.data[:2], "little")
+        for m in frames
+        if m.arbitration_id == TPDO1 and m.timestamp > resumed_at
+    ]
+    assert statuswords and decode_statusword(statuswords[0]) == State.FAULT
+    assert stopped_in_the_can_log(outcome.run_dir)
 
 
 # ---- the store: nothing lost, nothing overwritten, nothing hidden -----------------------------------
@@ -401,3 +462,53 @@ def test_an_unusable_store_folder_or_a_damaged_catalog_is_one_line(tmp_path: Pat
     result = hdrig(home, "runs", "list")
     no_traceback(result.stderr)
     assert result.returncode == 2 and "the run catalog is damaged (file is not a database)" in result.stderr
+
+
+# ---- garbage in run files: refused in one line, with the limit ------------------------------------
+
+
+def _csv_run(folder: Path, text: str, meta: dict[str, Any] | None = None) -> Path:
+    path = folder / "run.csv"
+    path.write_text(text)
+    if meta is not None:
+        (folder / "run.csv.json").write_text(json.dumps(meta))
+    return path
+
+
+GOOD_CSV = "t,u,i_cmd,theta_m\n0,0,0,0\n0.001,1,0.1,0\n0.002,1,0.1,0.001\n"
+
+
+@pytest.mark.parametrize(
+    ("text", "meta", "says"),
+    [
+        (GOOD_CSV.replace("0.001,1,0.1,0\n", "0.001,1,1e300,0\n"), None, "column 'i_cmd' row 1 is 1e+300 A"),
+        (
+            GOOD_CSV,
+            {"sample_rate_hz": -5},
+            "metadata sample_rate_hz is -5; it must be a number of Hz in (0, 1e+07]",
+        ),
+        (GOOD_CSV, {"sample_rate_hz": "fast"}, "metadata sample_rate_hz is 'fast'"),
+        (GOOD_CSV.replace("0.002,", "0.001,"), None, "column 't' must be strictly increasing; row 2"),
+        ("t;u;theta_m\n0;0;0\n0,001;1;0\n", None, "the columns look separated by ';'"),
+    ],
+)
+def test_garbage_in_a_run_file_is_refused_in_one_line(
+    tmp_path: Path, text: str, meta: dict[str, Any] | None, says: str
+) -> None:
+    path = _csv_run(tmp_path, text, meta)
+    with pytest.raises(UserInputError) as refused:
+        read_run(path)
+    assert says in str(refused.value) and "\n" not in str(refused.value), refused.value
+    result = hdrig(
+        tmp_path / "home", "simulate", "--model", "seed", "--input-file", str(path), "--out", "x.csv"
+    )
+    no_traceback(result.stderr)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1 and says in result.stderr, result.stderr
+
+
+def test_a_run_of_plausible_values_is_still_read(tmp_path: Path) -> None:
+    # Magnitudes a real long run reaches (10 h at 600 rad/s on the motor; a Unix-epoch time base) pass.
+    t0 = 1.7e9
+    text = f"t,i_cmd,theta_m\n{t0},9.5,2.1e7\n{t0 + 0.001},-9.5,2.1e7\n"
+    run = read_run(_csv_run(tmp_path, text, {"sample_rate_hz": 1000}))
+    assert run.sample_rate_hz == 1000 and run["theta_m"][0] == 2.1e7
