@@ -31,6 +31,9 @@ STATUS_CAP_RANGE = 0x02  # the capacitive reading is clipped to the i32 range
 STATUS_OVERRUN = 0x04  # the device dropped frames just before this one (its FIFO was full)
 
 SEQ_MODULUS = 2**32
+REORDER_WINDOW = 64
+"""Frames this far behind the newest one may still be a late or repeated frame; farther back, the
+sequence restarted (a device reset)."""
 MAX_SAMPLES_PER_FRAME = 255
 MAX_FRAME_BYTES = DATA_HEADER.size + MAX_SAMPLES_PER_FRAME * SAMPLE_DTYPE.itemsize + CRC.size
 MAX_ENCODED_BYTES = MAX_FRAME_BYTES + MAX_FRAME_BYTES // 254 + 1
@@ -182,6 +185,8 @@ class DecoderStats:
     discarded_bytes: int = 0  # bytes not part of any delivered frame (delimiters not counted)
     lost_frames: int = 0  # by sequence number, including frames lost at the end (STOP's count)
     lost_samples: int = 0
+    late_frames: int = 0  # arrived after a later one: delivered at their own index, not counted lost
+    duplicates: int = 0  # a frame delivered before, again (same number and time): dropped
 
 
 class FrameDecoder:
@@ -190,7 +195,10 @@ class FrameDecoder:
     Resynchronises on the next 0x00 after garbage; a block that fails is searched for a frame at its
     end (garbage without a 0x00 glued in front of a good frame costs the garbage only). Frames with a
     bad CRC are dropped and counted; gaps in the sequence numbers are counted in frames and samples,
-    modulo 2**32.
+    modulo 2**32. Within REORDER_WINDOW frames behind the newest: a frame counted lost that turns up
+    late is delivered with its own sample index (and no longer counted lost), and a repeat of a frame
+    delivered is dropped, so no sample is invented and none is counted twice. Frames are delivered in
+    the order they arrive: a late one comes after its successors (`first_index` says where it goes).
     """
 
     def __init__(self) -> None:
@@ -198,11 +206,15 @@ class FrameDecoder:
         self._buffer = bytearray()
         self._expected_seq: int | None = None
         self._next_index = 0
+        self._missing: dict[int, int] = {}  # seq counted lost → its first_index, within the window
+        self._delivered: dict[int, int] = {}  # seq → t0_us of the last REORDER_WINDOW frames delivered
 
     def restart_sequence(self) -> None:
         """Before START: the device numbers the next stream's frames from 0."""
         self._expected_seq = 0
         self._next_index = 0
+        self._missing.clear()
+        self._delivered.clear()
 
     def account_tail(self, frames_sent: int, samples_sent: int) -> None:
         """After STOP: count what the device sent (STOP's reply) but never arrived at the end."""
@@ -211,6 +223,8 @@ class FrameDecoder:
         self.stats.lost_frames += (frames_sent - self._expected_seq) % SEQ_MODULUS
         self.stats.lost_samples += max(0, samples_sent - self._next_index)
         self._expected_seq = None
+        self._missing.clear()
+        self._delivered.clear()
 
     def feed(self, data: bytes) -> list[Frame]:
         """The frames completed by `data`, in the order they were sent."""
@@ -261,18 +275,42 @@ class FrameDecoder:
             self.stats.replies += 1
             frames.append(frame)
             return
-        n = len(frame.samples)
+        n, seq = len(frame.samples), frame.seq
         if self._expected_seq is not None:
-            lost = (frame.seq - self._expected_seq) % SEQ_MODULUS
-            if lost < SEQ_MODULUS // 2:  # a jump backwards is a restarted device, not a loss
+            lost = (seq - self._expected_seq) % SEQ_MODULUS
+            behind = SEQ_MODULUS - lost
+            if lost < SEQ_MODULUS // 2:
+                for k in range(max(0, lost - REORDER_WINDOW), lost):
+                    self._missing[(self._expected_seq + k) % SEQ_MODULUS] = self._next_index + k * n
                 self.stats.lost_frames += lost
                 self.stats.lost_samples += lost * n  # a stream's frames all hold the same n
                 self._next_index += lost * n
-        self._expected_seq = (frame.seq + 1) % SEQ_MODULUS
-        frames.append(replace(frame, first_index=self._next_index))
+            elif behind <= REORDER_WINDOW and seq in self._missing:
+                first_index = self._missing.pop(seq)
+                self.stats.lost_frames -= 1
+                self.stats.lost_samples -= n
+                self.stats.late_frames += 1
+                self._deliver(replace(frame, first_index=first_index), frames)
+                return
+            elif behind <= REORDER_WINDOW and self._delivered.get(seq) == frame.t0_us:
+                self.stats.duplicates += 1
+                return
+            else:  # farther back, or a frame never seen: the device restarted its numbering
+                self._missing.clear()
+                self._delivered.clear()
+        self._expected_seq = (seq + 1) % SEQ_MODULUS
+        for old in [s for s in self._missing if (seq - s) % SEQ_MODULUS >= REORDER_WINDOW]:
+            del self._missing[old]
+        self._deliver(replace(frame, first_index=self._next_index), frames)
         self._next_index += n
+
+    def _deliver(self, frame: DataFrame, frames: list[Frame]) -> None:
+        self._delivered[frame.seq] = frame.t0_us
+        if len(self._delivered) > REORDER_WINDOW:
+            del self._delivered[next(iter(self._delivered))]
+        frames.append(frame)
         self.stats.frames += 1
-        self.stats.samples += n
+        self.stats.samples += len(frame.samples)
 
 
 # --- command lines ----------------------------------------------------------------------------------------

@@ -246,17 +246,20 @@ class DaqTally:
     last_t_s: float = math.nan
     streams: list[DecoderStats] = field(default_factory=list)
     """The decoder's counts at the end of each stream (lost frames and samples by sequence number)."""
-    _next_index: int | None = None
+    _gaps_before: int = 0  # of the streams before this one
+    _span: tuple[int, int] | None = None  # lowest and highest sample index of this stream
+    _stream_samples: int = 0
 
     def add(self, block: SampleBlock) -> None:
         n = len(block)
         if not n:
             return
-        first, last = int(block.index[0]), int(block.index[-1])
-        if self._next_index is not None:
-            self.index_gaps += max(0, first - self._next_index)
-        self.index_gaps += last - first + 1 - n  # indices rise within a stream: a gap is a jump
-        self._next_index = last + 1
+        # From the stream's index span, not block to block: a late frame fills a gap counted before.
+        first, last = int(block.index.min()), int(block.index.max())
+        if self._span is not None:
+            first, last = min(first, self._span[0]), max(last, self._span[1])
+        self._span, self._stream_samples = (first, last), self._stream_samples + n
+        self.index_gaps = self._gaps_before + last - first + 1 - self._stream_samples
         if block.status.any():
             self.flagged += int(np.count_nonzero(block.status & (STATUS_ENCODER_FAULT | STATUS_CAP_RANGE)))
         if self.samples == 0:
@@ -265,7 +268,7 @@ class DaqTally:
         self.samples += n
 
     def new_stream(self) -> None:
-        self._next_index = None
+        self._gaps_before, self._span, self._stream_samples = self.index_gaps, None, 0
 
 
 class HardwareRig(Rig):
@@ -636,6 +639,9 @@ class HardwareRig(Rig):
             t_device, theta_l, theta_m = (
                 np.concatenate(parts) for parts in zip(*self._daq_samples, strict=True)
             )
+            if np.any(np.diff(t_device) <= 0):  # a late frame read after its successors: into place
+                t_device, keep = np.unique(t_device, return_index=True)
+                theta_l, theta_m = theta_l[keep], theta_m[keep]
             self._daq_samples = [(t_device, theta_l, theta_m)]
         return self._daq_samples[0]
 

@@ -406,6 +406,8 @@ class SerialDaq:
             return SampleBlock(
                 none, none, none, none, none.astype(np.uint32), none.astype(np.int64), none.astype(np.uint8)
             )
+        # A late frame (its successors came first) goes back to its place: samples in device-time order.
+        frames = sorted(frames, key=lambda f: f.first_index)
         counts = np.array([len(f.samples) for f in frames])
         starts = np.cumsum(counts) - counts
         within = np.arange(int(counts.sum())) - np.repeat(starts, counts)

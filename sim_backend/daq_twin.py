@@ -229,6 +229,8 @@ class DaqTwin:
         self._skipping_line = False
         self._outbuf = bytearray()
         self._line_events: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
+        self._faults: queue.SimpleQueue[Literal["repeat", "swap"]] = queue.SimpleQueue()
+        self._held: bytes | None = None  # a frame swapped behind the next one
         self._commands: dict[str, Callable[[list[str]], str]] = {
             "ID?": self._id,
             "RATE": self._rate,
@@ -272,6 +274,14 @@ class DaqTwin:
     def corrupt_next_frame(self) -> None:
         """Flip a payload byte of the next data frame after its CRC is computed (tests: a CRC error)."""
         self._line_events.put(None)
+
+    def repeat_next_frame(self) -> None:
+        """Send the next data frame twice in a row (tests: a repeated frame)."""
+        self._faults.put("repeat")
+
+    def swap_next_frames(self) -> None:
+        """Send the next data frame after the one following it (tests: frames out of order)."""
+        self._faults.put("swap")
 
     def close(self) -> None:
         """Stop the device thread and free the pty or socket; re-raise what ended the thread, if anything."""
@@ -435,8 +445,20 @@ class DaqTwin:
             if len(self._outbuf) > self.fifo_bytes:
                 self._overrun = True  # the FIFO is full: this frame is lost, its number used up
             else:
-                self._outbuf += self._frame(self._seq)
+                self._outbuf += self._misordered(self._frame(self._seq))
             self._seq += 1
+
+    def _misordered(self, frame: bytes) -> bytes:
+        """The frame as the fault asked of it (repeated, held back behind the next one), else as is."""
+        if self._held is not None:
+            frame, self._held = frame + self._held, None
+        elif not self._faults.empty():
+            fault = self._faults.get()
+            if fault == "repeat":
+                frame += frame
+            else:
+                frame, self._held = b"", frame
+        return frame
 
     def _raw_counts(self, theta_m: np.ndarray) -> np.ndarray:
         return np.floor(theta_m * (self.encoder_counts_per_rev / (2 * math.pi)) + 0.5).astype(np.int64)

@@ -16,6 +16,7 @@ import serial
 
 from drivers.daq_protocol import (
     MAX_ENCODED_BYTES,
+    REORDER_WINDOW,
     SAMPLE_DTYPE,
     STATUS_OVERRUN,
     DataFrame,
@@ -29,7 +30,8 @@ from drivers.daq_protocol import (
     encode_data_frame,
     encode_reply_frame,
 )
-from drivers.serial_daq import ClockEstimate, ClockModel, DaqConfigError, DaqError, SerialDaq
+from drivers.hardware_rig import DaqTally
+from drivers.serial_daq import ClockEstimate, ClockModel, DaqConfigError, DaqError, SampleBlock, SerialDaq
 from hdrig_testing.stepped_plant import SteppedPlantSource
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
@@ -208,6 +210,32 @@ def test_a_sequence_jumping_back_is_a_restarted_device_not_a_loss() -> None:
     got = decoder.feed(frame(100) + frame(0) + frame(1))
     assert seqs(got) == [100, 0, 1]
     assert decoder.stats.lost_frames == 0
+
+
+def timed(seq: int, n: int = 4) -> bytes:
+    """Frame `seq` of a stream of n samples per frame at 1 kHz from device time 0, as a board numbers it."""
+    return frame(seq, n=n, t0_us=seq * n * 1000)
+
+
+def test_a_repeated_frame_is_dropped_and_a_late_one_takes_its_own_place() -> None:
+    decoder = FrameDecoder()
+    decoder.restart_sequence()
+    got = decoder.feed(timed(0) + timed(1) + timed(1) + timed(3) + timed(2) + timed(4))
+    data = [f for f in got if isinstance(f, DataFrame)]
+    assert [f.seq for f in data] == [0, 1, 3, 2, 4]  # delivered as they came, the repeat left out
+    assert [f.first_index for f in data] == [0, 4, 12, 8, 16]  # each at its own place: none invented
+    stats = decoder.stats
+    assert (stats.duplicates, stats.late_frames, stats.lost_frames, stats.lost_samples) == (1, 1, 0, 0)
+    assert (stats.frames, stats.samples) == (5, 20)
+
+
+def test_a_frame_later_than_the_reorder_window_stays_lost() -> None:
+    decoder = FrameDecoder()
+    decoder.restart_sequence()
+    late = REORDER_WINDOW + 2
+    decoder.feed(timed(0) + b"".join(timed(k) for k in range(2, late + 1)) + timed(1))
+    # Frame 1 came after 65 of its successors: taken for a restarted device, not a late frame.
+    assert decoder.stats.late_frames == 0 and decoder.stats.lost_frames == 1
 
 
 # --- the command exchange, pymeasure-style: exact bytes both ways -------------------------------------
@@ -545,3 +573,46 @@ def test_closing_the_twin_and_the_driver_leaves_no_thread_and_no_file_open(trans
         daq.stop()
     assert threading.active_count() == threads
     assert len(os.listdir("/proc/self/fd")) == fds
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_repeated_and_swapped_frames_on_the_line_invent_no_sample_and_lose_none(transport: Transport) -> None:
+    with DaqTwin(wave, transport=transport) as twin, SerialDaq(twin.url, timeout_s=5.0) as daq:
+        daq.set_rate(5000, samples_per_frame=10)
+        daq.start()
+        blocks = [daq.read_samples(min_samples=50)]
+        twin.repeat_next_frame()
+        blocks.append(daq.read_samples(min_samples=50))
+        twin.swap_next_frames()
+        blocks.append(daq.read_samples(min_samples=200))
+        stats = daq.stop()
+    for block in blocks:  # each block in device-time order, whatever order its frames came in
+        assert np.all(np.diff(block.t_device_s) > 0) and np.all(np.diff(block.index) > 0)
+    index = np.sort(np.concatenate([b.index for b in blocks]))
+    assert np.array_equal(index, np.arange(index[0], index[0] + len(index)))  # none twice, none missing
+    assert (stats.duplicates, stats.late_frames, stats.lost_frames, stats.lost_samples) == (1, 1, 0, 0)
+    t = np.concatenate([b.t_device_s for b in blocks])
+    theta_m, _ = wave(t[np.argsort(np.concatenate([b.index for b in blocks]))])
+    # Each sample is the source at its own device time (the encoder's quantum, 2π/131072 rad).
+    got = np.concatenate([b.theta_m_rad for b in blocks])[
+        np.argsort(np.concatenate([b.index for b in blocks]))
+    ]
+    assert np.max(np.abs(got - got[0] - (theta_m - theta_m[0]))) <= 2 * RAD_PER_COUNT
+
+
+def test_the_rigs_tally_counts_no_gap_where_a_late_frame_filled_it() -> None:
+    def block(first: int) -> SampleBlock:
+        index = np.arange(first, first + 10)
+        t = index * 1e-3
+        return SampleBlock(t, t, t, t, np.zeros(10, np.uint32), index, np.zeros(10, np.uint8))
+
+    tally = DaqTally()
+    tally.add(block(0))
+    tally.add(block(20))
+    assert tally.index_gaps == 10  # samples 10..19 not (yet) in
+    tally.add(block(10))  # the late frame
+    assert (tally.index_gaps, tally.samples) == (0, 30)
+    tally.new_stream()
+    tally.add(block(0))
+    tally.add(block(15))
+    assert tally.index_gaps == 5  # the new stream's own gap, the first stream's none
