@@ -9,6 +9,7 @@ shrink 17–900× in practice), and a model that already matches the data must g
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import subprocess
@@ -18,8 +19,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrig_testing.hidden_effects import HIDDEN, hidden_case, record_open_loop, record_probe
+from hdrig_testing.hidden_effects import HIDDEN, Case, hidden_case, record_open_loop, record_probe
+from hdrig_testing.independent_plant import IndependentRig, lab_profile
 from model.gaps import METRIC, GapsResult, find_gaps
+from model.gaps.effects import SCREENS, SYSTEMATIC
+from model.gaps.workflow import GapOptions
 from model.params import load_model, save_model
 from rig.core.actions import gaps_document
 from rig.runfile import write_run
@@ -136,3 +140,96 @@ def test_cli_gaps_names_a_missing_run_in_one_line(tmp_path: Path):
     result = _hdrig("gaps", "--data", "no-such-run", "--model", "seed", cwd=tmp_path)
     assert result.returncode == 2
     assert result.stderr.count("\n") == 1 and "no-such-run" in result.stderr
+
+
+# --- data nobody here generated: the independent generator -------------------------------------------
+# hdrig_testing.independent_plant shares no code with the plant: scipy RK45 with event-located sticking,
+# a 14-bit motor encoder, its own velocity PI and lab profile with load steps. Each case is judged on the
+# gap in excess of the null floor (the gap of the same generator with nothing hidden): the hidden effect
+# must be named, alone, and remove at least half of that excess (the issue's "most of its excess gap").
+
+INDEPENDENT_S = 12.0  # a pass of each part of the lab profile; ~15 s to generate, ~10 s to analyse
+MOST_OF_EXCESS = 0.5
+
+
+@functools.cache
+def _independent(effects: tuple[str, ...], compliant: bool = False) -> tuple[Case, GapsResult]:
+    """The workflow's result on the independent generator's record of a case (made once per module)."""
+    case = hidden_case(effects, compliant=compliant)
+    setpoint, load = lab_profile(INDEPENDENT_S)
+    run = IndependentRig(case.truth, seed=1).record(setpoint, load, with_load=case.load_sensor)
+    return case, find_gaps([run], case.model)
+
+
+@pytest.fixture(scope="module")
+def independent_floor() -> dict[bool, float]:
+    """The null floor of the independent data, rigid and compliant: nothing hidden, nothing named."""
+    floors = {}
+    for compliant in (False, True):
+        _, result = _independent((), compliant)
+        assert result.steps == [], result.verdict
+        assert result.verdict.startswith("the model explains the data"), result.verdict
+        floors[compliant] = result.initial_gap
+    return floors
+
+
+@pytest.mark.parametrize(
+    "effects",
+    [("stribeck",), ("load_side_friction",), ("stribeck", "position_periodic_friction")],
+    ids=["stribeck", "load_side_friction", "stribeck+periodic"],
+)
+def test_independent_data_name_the_hidden_effects_and_remove_most_of_the_excess_gap(
+    effects: tuple[str, ...], independent_floor: dict[bool, float]
+):
+    case, result = _independent(effects)
+    floor = independent_floor[not case.model.rigid]
+    assert sorted(s.effect for s in result.steps) == sorted(effects), result.verdict
+    excess = result.initial_gap - floor
+    assert excess > floor, (
+        f"the hidden effect must stand out: gap {result.initial_gap:.3g}, floor {floor:.3g}"
+    )
+    removed = (result.initial_gap - result.final_gap) / excess
+    assert removed >= MOST_OF_EXCESS, f"{removed:.0%} of the excess removed"
+
+
+def test_stribeck_is_told_from_static_friction_by_its_decay_with_speed():
+    # Both add friction near zero speed; a higher breakaway shortens the same stick-slip. The static
+    # friction candidate's fit leaves friction that decays with |ω| while moving: it is rejected for that.
+    _, result = _independent(("stribeck",))
+    static = [t for t in result.steps[0].trials if t.candidate.effect == "static_friction"]
+    assert static and not static[0].accepted
+    assert "decays with speed" in static[0].reason
+
+
+def test_a_large_gap_no_effect_explains_is_reported_not_left_unsaid(monkeypatch: pytest.MonkeyPatch):
+    # An effect outside the vocabulary: Stribeck friction hidden, and the vocabulary cut down to effects
+    # that cannot explain it (Coulomb, viscous, direction offset). Nothing can be named; the result must
+    # still say the gap is systematic, where the residual lives (low speeds), and why each candidate tried
+    # was rejected.
+    kept = ("coulomb_friction", "viscous_friction", "direction_asymmetry")
+    monkeypatch.setattr("model.gaps.effects.SCREENS", {name: SCREENS[name] for name in kept})
+    case = hidden_case(("stribeck",))
+    result = find_gaps([record_probe(case.truth, DURATION_S, load_sensor=False)], case.model)
+    assert result.steps == []
+    assert result.verdict.startswith("nothing named, but the gap is systematic"), result.verdict
+    assert result.unexplained is not None and "speed" in result.unexplained.axis
+    assert result.unexplained.share >= SYSTEMATIC
+    assert result.rejected and all(": " in line for line in result.rejected)
+    doc = gaps_document(result).as_json()
+    assert doc["unexplained"] == result.unexplained.line() and doc["rejected"] == result.rejected
+
+
+def test_effects_that_only_explain_the_data_together_are_found_as_a_pair():
+    # Stribeck and position-periodic friction hidden together, and a bar (2×) that each alone misses on
+    # these data (×1.8 and ×1.6 held out): fitted together they pass it against the better one alone
+    # (×2.3), and both are added, one step each, the evidence saying they go together.
+    case = hidden_case(("stribeck", "position_periodic_friction"))
+    run = record_probe(case.truth, DURATION_S, load_sensor=False)
+    result = find_gaps([run], case.model, options=GapOptions(min_shrink=2.0))
+    assert sorted(s.effect for s in result.steps) == ["position_periodic_friction", "stribeck"], (
+        result.verdict
+    )
+    assert all("only together with" in s.evidence for s in result.steps)
+    assert result.steps[0].gap_after < result.steps[0].gap_before
+    assert result.steps[1].gap_after < result.steps[1].gap_before
+    assert result.initial_gap / result.final_gap >= 2.0

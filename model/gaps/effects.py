@@ -11,6 +11,7 @@ regressor φ means the model lacks −β·φ of friction.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -20,6 +21,7 @@ import numpy as np
 
 from model import kernel as k
 from model.fit.parameters import get_values
+from model.gaps.locate import CHANNEL_UNITS
 from model.gaps.residual import Residual
 from model.gaps.signals import Signals
 from model.params import N_FOURIER, HarmonicDriveModel
@@ -91,6 +93,11 @@ class Context:
         self.folds = np.concatenate([(s.t // FOLD_BLOCK_S).astype(np.int64) % FOLDS for s in signals])
         self.duration_s = max(float(s.t[-1]) for s in signals)
         self._level: tuple[np.ndarray, float] | None = None
+
+    def smooth(self, values: np.ndarray) -> np.ndarray:
+        """A column of every run side by side, smoothed run by run like the residual."""
+        parts = np.split(values, np.cumsum([s.n for s in self.signals])[:-1])
+        return np.concatenate([s.smooth(p) for s, p in zip(self.signals, parts, strict=True)])
 
     def smoothed(self, feature: Feature) -> np.ndarray:
         return np.concatenate(
@@ -572,3 +579,85 @@ def screen(ctx: Context, skip: set[str]) -> list[Candidate]:
     """Candidates that explain at least MIN_SCORE of their channel, best first."""
     found = [c for name, f in SCREENS.items() if name not in skip and (c := f(ctx)) is not None]
     return sorted((c for c in found if c.score >= MIN_SCORE), key=lambda c: -c.score)
+
+
+# --- what is left when no effect is named --------------------------------------------------------
+
+SPEED_BINS = (0.0, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, math.inf)
+"""|ω_m| bins [rad/s] of the generic speed signature."""
+SYSTEMATIC = 0.15
+"""A residual whose best generic signature explains at least this share of its channel on held-out
+blocks is systematic: something the model lacks, named or not (null cases of both data generators
+stay below it; see docs/BENCHMARKS.md)."""
+
+
+@dataclass(frozen=True)
+class Signature:
+    """The largest structure left in a residual: along which axis, how much of it, and where it peaks."""
+
+    channel: str
+    axis: str
+    share: float  # held-out share of the channel's variance a binned function of the axis explains
+    where: str  # the bin with the largest mean, and that mean
+
+    def line(self) -> str:
+        return (
+            f"{_pct(self.share)} of the {self.channel} residual (held out) varies with {self.axis};"
+            f" largest {self.where}"
+        )
+
+
+def _bins(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The bin of each value among `edges` (the last bin takes what lies beyond)."""
+    return np.clip(np.digitize(values, edges) - 1, 0, len(edges) - 2)
+
+
+def signature(ctx: Context) -> Signature | None:
+    """The generic signature that explains most of a residual channel on held-out blocks: binned
+    functions of speed, motor angle, time and transmitted torque (each times sgn ω on the motor
+    channel, as a friction), and of rest. Binned, not a vocabulary effect: it says where an unnamed
+    residual lives."""
+    speed = np.concatenate([s.omega_m for s in ctx.signals])
+    stuck = np.concatenate([s.stuck for s in ctx.signals])
+    sign = np.where(stuck, 0.0, np.sign(speed))
+    angle = np.mod(np.concatenate([s.theta_m for s in ctx.signals]), 2 * math.pi)
+    offsets = np.cumsum([0.0] + [float(s.t[-1]) for s in ctx.signals[:-1]])
+    clock = np.concatenate([s.t + o for s, o in zip(ctx.signals, offsets, strict=True)])
+    torque = np.abs(np.concatenate([r.torque_s for r in ctx.residuals]))
+    torque_edges = np.unique(np.quantile(torque, np.linspace(0, 1, 7)))
+    if torque_edges.size < 2:
+        torque_edges = np.array([0.0, math.inf])
+    time_edges = np.arange(0.0, float(clock.max()) + 2.5, 2.5)
+    axes: dict[str, tuple[np.ndarray, list[str]]] = {
+        "speed": (
+            _bins(np.abs(speed), np.array(SPEED_BINS)),
+            [f"at |ω_m| in [{a:g}, {b:g}) rad/s" for a, b in itertools.pairwise(SPEED_BINS)],
+        ),
+        "motor angle": (
+            _bins(angle, np.linspace(0, 2 * math.pi, 25)),
+            [f"at θ_m mod 2π ≈ {15 * i + 7.5:.0f}°" for i in range(24)],
+        ),
+        "time": (_bins(clock, time_edges), [f"around t = {a + 1.25:g} s" for a in time_edges[:-1]]),
+        "transmitted torque": (
+            _bins(torque, torque_edges),
+            [f"at |T_s| in [{a:.2g}, {b:.2g}) N·m" for a, b in itertools.pairwise(torque_edges)],
+        ),
+        "rest": (np.where(stuck, 0, -1), ["at rest in the data"]),
+    }
+    best: Signature | None = None
+    for channel, y in ctx.channels.items():
+        unit = CHANNEL_UNITS[channel]
+        for axis, (index, labels) in axes.items():
+            signed = channel == "motor" and axis != "rest"
+            factor = sign if signed else np.ones(len(y))
+            used = [b for b in range(len(labels)) if np.any((index == b) & (factor != 0))]
+            if not used:
+                continue
+            columns = [np.where(index == b, factor, 0.0) for b in used]
+            X = np.column_stack(columns if channel == "load_position" else [ctx.smooth(c) for c in columns])
+            score, beta = cv_regression(y, X, ctx.folds)
+            if best is None or score > best.share:
+                top = int(np.argmax(np.abs(beta)))
+                what = f"{labels[used[top]]}: residual {beta[top]:+.3g} {unit}{' × sgn ω' if signed else ''}"
+                best = Signature(channel, f"{axis}{' (× sgn ω)' if signed else ''}", score, what)
+    return best

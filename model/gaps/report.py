@@ -162,14 +162,12 @@ def write_report(
         files.append(_panels("residual of the model (motor)", {"model": where}, out_dir / "residual.png"))
         lines += ["## Where the residual is", ""] + [f"- {line}" for line in where.lines()]
         lines += ["", "![residual](residual.png)", ""]
-    if result.last_trials:
-        last = "; ".join(
-            f"{t.candidate.effect} (signature {100 * t.candidate.score:.0f} %, held out"
-            f" ×{t.baseline / max(t.held_out_after, 1e-300):.2f})"
-            for t in result.last_trials
-        )
+    if result.rejected:
         rule = f"needs ×{opts.min_shrink:g} held out and determined parameters"
-        lines += [f"Not significant at the end ({rule}): {last}.", ""]
+        lines += [f"Not accepted at the end ({rule}):", ""] + [f"- {line}" for line in result.rejected]
+        lines.append("")
+    if result.unexplained is not None:
+        lines += [f"Largest residual signature left: {result.unexplained.line()}.", ""]
     lines += ["![worst window](window.png)", ""]
     if result.final_model is not None:
         what = "with the effects added" if result.steps else "(unchanged: nothing was added)"

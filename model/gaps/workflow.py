@@ -13,19 +13,42 @@ Significance rule: a candidate is accepted only if the held-out gap shrinks by a
 that its own parameters must earn their place — AND its own parameters are determined (none blind or
 confounded, at least one with |estimate| ≥ 3 standard errors). Among accepted candidates the smallest
 held-out gap wins, except that one with fewer parameters within 10 % of it is preferred. When none is
-accepted, the model explains the data and nothing is added.
+accepted:
+- pairs: effects that only explain the data together (each alone short of the rule) are tried two at a
+  time, among the candidates that shrank the gap at all; a pair is accepted when it shrinks the held-out
+  gap `min_shrink`× against the current model and against each of its members alone, both members'
+  parameters determined; it adds two steps;
+- else nothing is added, and the result still says what is left: the largest unexplained residual
+  signature (`effects.signature`: a binned function of speed, angle, time, torque or rest) and why each
+  candidate was rejected. The verdict says the model explains the data only when that signature is
+  below `effects.SYSTEMATIC`.
+
+Stribeck or static friction: both add friction near zero speed, and on closed-loop data a higher
+breakaway alone can shorten the same stick-slip. What tells them apart is the decay with speed: a static
+friction candidate is rejected when its fitted model still leaves friction decaying with |ω| while
+moving (Stribeck's signature explains `min_decay` or more of the motor residual beyond the level).
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from model.errors import UserInputError
-from model.fit.parameters import get_values
+from model.fit.parameters import get_values, with_values
 from model.fit.trajectory import ParameterEstimate
-from model.gaps.effects import Candidate, Context, merge_sections, screen
+from model.gaps.effects import (
+    SYSTEMATIC,
+    Candidate,
+    Context,
+    Signature,
+    merge_sections,
+    screen,
+    screen_stribeck,
+    signature,
+)
 from model.gaps.residual import Residual, one_step_residual
 from model.gaps.shooting import METRIC, EffectFit, Shooting, fit_on_windows
 from model.gaps.signals import SMOOTHING_S, Signals, cut_windows, prepare
@@ -48,6 +71,8 @@ class GapOptions:
     confirm: int = 3  # candidates fitted by the simulator per step
     max_fit_windows: int = 150
     max_iterations: int = 12
+    min_decay: float = 0.05  # Stribeck's signature left by a static-friction fit that rejects it
+    pairs: int = 3  # pairs tried when no single candidate passes (among the best partial shrinks)
 
 
 @dataclass
@@ -61,6 +86,20 @@ class Trial:
     baseline: float  # held-out gap to beat: current model, or its interacting parameters refitted
     determined: bool
     accepted: bool
+    reason: str = ""  # why it was rejected (empty when accepted)
+    partner: Candidate | None = None  # tried as a pair with this one
+
+    @property
+    def effects(self) -> list[str]:
+        return [self.candidate.effect] + ([self.partner.effect] if self.partner else [])
+
+    def line(self, gap_test: float) -> str:
+        """One line: what was tried, its held-out shrink, and the verdict."""
+        name = " + ".join(self.effects)
+        if self.reason.startswith("held-out gap"):
+            return f"{name}: {self.reason}"
+        gain = gap_test / max(self.held_out_after, 1e-300)
+        return f"{name}: held-out gap ×{gain:.2f}, {self.reason or 'accepted'}"
 
 
 @dataclass
@@ -95,17 +134,23 @@ class GapsResult:
     verdict: str  # one line: what was found, or that the model explains the data
     last_trials: list[Trial] = field(default_factory=list)  # the step that found nothing
     report: list[Path] = field(default_factory=list)
+    unexplained: Signature | None = None  # the largest structure left in the final model's residual
+    rejected: list[str] = field(default_factory=list)  # the last step's candidates and why each failed
 
 
-def _determined(fit: EffectFit, own: list[str], min_t_ratio: float) -> bool:
-    """No own parameter blind or confounded, and at least one clearly nonzero."""
+def _undetermined(fit: EffectFit, own: list[str], min_t_ratio: float) -> str:
+    """Why the fit's own parameters are not determined ('' when they are): one blind or confounded, or
+    none clearly nonzero."""
     mine = [p for p in fit.parameters if p.name in own]
-    if any(p.note and "exceeds" not in p.note for p in mine):
-        return False  # blind or confounded
-    return any(
+    for p in mine:
+        if p.note and "exceeds" not in p.note:
+            return f"{p.name}: {p.note}"
+    if any(
         p.identifiable and p.std_error is not None and abs(p.estimate) >= min_t_ratio * p.std_error
         for p in mine
-    )
+    ):
+        return ""
+    return f"none of {', '.join(own)} is {min_t_ratio:g} standard errors from zero"
 
 
 def _choose(
@@ -181,10 +226,83 @@ def _try(
             start = [n for n, v in get_values(current, sorted(key)).items() if v != 0.0]
             refit = fit_on_windows(current, shooting, start, {}, opts.max_fit_windows, opts.max_iterations)
             baselines[key] = min(gap_test, shooting.gap(refit.model, shooting.test)) if start else gap_test
-        determined = _determined(fit, cand.own, opts.min_t_ratio)
-        accepted = determined and min(gap_test, baselines[key]) >= opts.min_shrink * after
-        trials.append(Trial(cand, names, fit, after, min(gap_test, baselines[key]), determined, accepted))
+        undetermined = _undetermined(fit, cand.own, opts.min_t_ratio)
+        baseline = min(gap_test, baselines[key])
+        why = undetermined
+        if not why and baseline < opts.min_shrink * after:
+            why = f"held-out gap ×{baseline / max(after, 1e-300):.2f}, needs ×{opts.min_shrink:g}" + (
+                f" (against refitting {', '.join(sorted(key))} alone)" if baseline < gap_test else ""
+            )
+        trials.append(Trial(cand, names, fit, after, baseline, not undetermined, not why, why))
     return trials
+
+
+def _leaves_decay(trial: Trial, signals: list[Signals], opts: GapOptions) -> float:
+    """Stribeck's signature in the residual of a fitted model: the share of the motor residual that
+    friction decaying with |ω| explains beyond the level (held out); 0 if it has none."""
+    ctx = Context(trial.fit.model, signals, residuals_of(trial.fit.model, signals, opts.dt_s))
+    left = screen_stribeck(ctx)
+    return left.score if left is not None else 0.0
+
+
+def _tell_static_from_stribeck(trials: list[Trial], signals: list[Signals], opts: GapOptions) -> None:
+    """Reject an accepted static-friction trial whose model still leaves friction decaying with speed:
+    that is Stribeck's, which a higher breakaway only imitates on closed-loop stick-slip."""
+    for trial in trials:
+        if trial.accepted and trial.candidate.effect == "static_friction" and trial.partner is None:
+            decay = _leaves_decay(trial, signals, opts)
+            if decay >= opts.min_decay:
+                trial.accepted = False
+                trial.reason = (
+                    f"its fit leaves friction that decays with speed ({100 * decay:.0f} % of the motor"
+                    f" residual beyond the level, Stribeck's signature; needs < {100 * opts.min_decay:.0f} %)"
+                )
+
+
+def _try_pairs(
+    current: HarmonicDriveModel,
+    trials: list[Trial],
+    shooting: Shooting,
+    gap_test: float,
+    prior: list[str],
+    opts: GapOptions,
+) -> list[Trial]:
+    """Pairs of the candidates that shrank the held-out gap at all (the best `opts.pairs` of them),
+    fitted together; accepted when the pair shrinks the gap `min_shrink`× against the current model
+    and against each member alone, with both members' parameters determined."""
+    helpful = sorted((t for t in trials if t.held_out_after < gap_test), key=lambda t: t.held_out_after)
+    helpful = helpful[: opts.pairs]
+    out = []
+    for first, second in itertools.combinations(helpful, 2):
+        a, b = first.candidate, second.candidate
+        if set(a.own) & set(b.own):
+            continue
+        sections = dict(a.sections)
+        for key, value in b.sections.items():
+            both = sections.get(key)
+            sections[key] = {**both, **value} if isinstance(both, dict) and isinstance(value, dict) else value
+        names = list(dict.fromkeys(a.fit + b.fit + prior))
+        fit = fit_on_windows(
+            merge_sections(current, **sections),
+            shooting,
+            names,
+            {**a.ties, **b.ties},
+            opts.max_fit_windows,
+            opts.max_iterations,
+        )
+        after = shooting.gap(fit.model, shooting.test)
+        alone = min(gap_test, first.held_out_after, second.held_out_after)
+        undetermined = _undetermined(fit, a.own, opts.min_t_ratio) or _undetermined(
+            fit, b.own, opts.min_t_ratio
+        )
+        why = undetermined
+        if not why and alone < opts.min_shrink * after:
+            why = (
+                f"held-out gap ×{alone / max(after, 1e-300):.2f} against the better member alone,"
+                f" needs ×{opts.min_shrink:g}"
+            )
+        out.append(Trial(a, names, fit, after, alone, not undetermined, not why, why, partner=b))
+    return out
 
 
 def _shortlist(candidates: list[Candidate], count: int) -> list[Candidate]:
@@ -195,6 +313,38 @@ def _shortlist(candidates: list[Candidate], count: int) -> list[Candidate]:
         if best not in chosen:
             chosen.append(best)
     return chosen
+
+
+@dataclass
+class _Member:
+    """One effect of an accepted trial, as a step: its model and values."""
+
+    candidate: Candidate
+    model: HarmonicDriveModel
+    parameters: dict[str, float]
+    evidence: str
+
+
+def _members(chosen: Trial, current: HarmonicDriveModel, shooting: Shooting) -> list[_Member]:
+    """A single trial's one step; a pair's two: first the member that alone (at the pair's fitted
+    values) leaves the smaller gap, then the pair's model."""
+    values = {p.name: p.estimate for p in chosen.fit.parameters}
+    if chosen.partner is None:
+        return [_Member(chosen.candidate, chosen.fit.model, values, chosen.candidate.evidence)]
+    together = "; explains the data only together with {} (held-out gap ×{:.2f} together)"
+    gain = chosen.baseline / max(chosen.held_out_after, 1e-300)
+    alone = []
+    for cand in (chosen.candidate, chosen.partner):
+        names = [n for n in cand.fit if n in values]
+        model = with_values(merge_sections(current, **cand.sections), {n: values[n] for n in names})
+        model = with_values(model, {t: values[s] for t, s in cand.ties.items() if s in values})
+        alone.append((shooting.gap(model, shooting.test), cand, model, {n: values[n] for n in names}))
+    alone.sort(key=lambda a: a[0])
+    (_, first, model, own), (_, second, _, _) = alone
+    return [
+        _Member(first, model, own, first.evidence + together.format(second.effect, gain)),
+        _Member(second, chosen.fit.model, values, second.evidence + together.format(first.effect, gain)),
+    ]
 
 
 def residuals_of(model: HarmonicDriveModel, signals: list[Signals], dt_s: float) -> list[Residual]:
@@ -235,28 +385,41 @@ def find_gaps(
         ctx = Context(current, signals, residuals_of(current, signals, opts.dt_s))
         shortlist = _shortlist(screen(ctx, skip={s.effect for s in steps}), opts.confirm)
         trials = _try(current, shortlist, shooting, gap_test, _prior(steps), opts, say, number, base)
+        _tell_static_from_stribeck(trials, signals, opts)
         chosen = _choose(trials, current, gap_test, opts)
         if chosen is None:
+            say(f"step {number + 1}: trying effects in pairs", base + 0.8 / opts.max_steps)
+            pairs = _try_pairs(current, trials, shooting, gap_test, _prior(steps), opts)
+            trials += pairs
+            chosen = min((t for t in pairs if t.accepted), key=lambda t: t.held_out_after, default=None)
+        if chosen is None:
             break
-        after_all = shooting.gap(chosen.fit.model, shooting.everything)
-        steps.append(
-            GapStep(
-                effect=chosen.candidate.effect,
-                gap_before=gap_all,
-                gap_after=after_all,
-                held_out_before=gap_test,
-                held_out_after=chosen.held_out_after,
-                evidence=chosen.candidate.evidence,
-                parameters={p.name: p.estimate for p in chosen.fit.parameters},
-                estimates=chosen.fit.parameters,
-                model_before=current,
-                model_after=chosen.fit.model,
-                trials=trials,
+        for member in _members(chosen, current, shooting):
+            after_all = shooting.gap(member.model, shooting.everything)
+            after_test = (
+                shooting.gap(member.model, shooting.test) if chosen.partner else chosen.held_out_after
             )
-        )
-        current, gap_all, gap_test = chosen.fit.model, after_all, chosen.held_out_after
+            steps.append(
+                GapStep(
+                    effect=member.candidate.effect,
+                    gap_before=gap_all,
+                    gap_after=after_all,
+                    held_out_before=gap_test,
+                    held_out_after=after_test,
+                    evidence=member.evidence,
+                    parameters=member.parameters,
+                    estimates=[p for p in chosen.fit.parameters if p.name in member.parameters],
+                    model_before=current,
+                    model_after=member.model,
+                    trials=trials,
+                )
+            )
+            current, gap_all, gap_test = member.model, after_all, after_test
         trials = []
 
+    final_ctx = Context(current, signals, residuals_of(current, signals, opts.dt_s))
+    left = signature(final_ctx)
+    rejected = [t.line(gap_test) for t in trials]
     if steps:
         added = ", ".join(s.effect for s in steps)
         shrink = initial / max(gap_all, 1e-300)
@@ -266,16 +429,22 @@ def find_gaps(
             description=f"{model.description} Effects added by `hdrig gaps`: {added}.".strip(),
         )
     else:
-        best = min(trials, key=lambda t: t.held_out_after, default=None)
         tried = (
-            f"; best candidate {best.candidate.effect}: held-out gap"
-            f" ×{best.baseline / max(best.held_out_after, 1e-300):.2f}, needs ×{opts.min_shrink:g}"
-            if best is not None
+            "; tried " + "; ".join(rejected)
+            if rejected
             else "; no effect's signature explains any of the residual"
         )
-        verdict = (
-            f"the model explains the data: nothing significant is missing (gap {gap_all:.3g} rad{tried})"
-        )
+        where = f"; largest residual signature: {left.line()}" if left is not None else ""
+        if left is not None and left.share >= SYSTEMATIC:
+            verdict = (
+                f"nothing named, but the gap is systematic (gap {gap_all:.3g} rad): no effect of the"
+                f" vocabulary explains it{where}{tried}"
+            )
+        else:
+            verdict = (
+                "the model explains the data: nothing significant is missing"
+                f" (gap {gap_all:.3g} rad{where}{tried})"
+            )
     out = (
         Path(model_out)
         if model_out is not None
@@ -285,7 +454,18 @@ def find_gaps(
         out.parent.mkdir(parents=True, exist_ok=True)
         save_model(current, out)
     result = GapsResult(
-        METRIC, initial, steps, gap_all, out, current, initial_test, gap_test, verdict, trials
+        METRIC,
+        initial,
+        steps,
+        gap_all,
+        out,
+        current,
+        initial_test,
+        gap_test,
+        verdict,
+        trials,
+        unexplained=left,
+        rejected=rejected,
     )
     if report_dir is not None:
         from model.gaps.report import write_report

@@ -407,6 +407,8 @@ def gaps_document(result: GapsResult, folder: Path | None = None) -> GapsDocumen
         final_gap=result.final_gap,
         final_model=str(result.final_model) if result.final_model else None,
         verdict=result.verdict,
+        unexplained=result.unexplained.line() if result.unexplained is not None else None,
+        rejected=list(result.rejected),
         report=[str(p) for p in result.report],
         folder=str(folder) if folder else None,
     )

@@ -135,6 +135,16 @@ class GapsDocument(Document):
     final_gap: float
     final_model: str | None
     verdict: str = Field(default="", description="one line: what was found")
+    unexplained: str | None = Field(
+        default=None,
+        description="the largest structure left in the final model's residual: the share a binned function"
+        " of speed, motor angle, time, transmitted torque or rest explains (held out), and where it peaks",
+    )
+    rejected: list[str] = Field(
+        default_factory=list,
+        description="the last step's candidates (single effects and pairs), each with its held-out shrink"
+        " and why it was not accepted",
+    )
     report: list[str] = Field(default_factory=list, description="the report's files, with --report")
     folder: str | None = Field(default=None, description="the analysis folder holding its files")
 
