@@ -40,6 +40,7 @@ from drivers.canopen_config import (
     SdoWrite,
     Watchdog,
     boot_plan,
+    check_plan,
     declared_range,
     guarding,
     host_watchdog,
@@ -707,6 +708,12 @@ class CanopenServo:
 
     def _write(self, plan: list[SdoWrite]) -> None:
         _network, node = self._connected()
+        problems = check_plan(self.od, plan)  # before the first write: no drive left half configured
+        if problems:
+            more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+            raise DriveSettingError(
+                f"node {node.id}: the rig file asks what the drive's EDS refuses: {problems[0]}{more}"
+            )
         for write in plan:
             try:
                 node.sdo.download(write.index, write.subindex, write.data(self.od))

@@ -66,6 +66,12 @@ def _meta(model: HarmonicDriveModel, rate_hz: float, **extra: Any) -> dict[str, 
 
 CHUNK_STEPS = 1 << 15
 """Integration steps per chunk: inputs and outputs of a chunk stay in the CPU cache, whatever the duration."""
+MAX_SAMPLES = 100_000_000
+"""Samples one simulation may write (28 h at 1 kHz, ~8 GB of ten float64 columns): a longer one is
+refused before its first step, not left to fill the disk."""
+MAX_STEPS = 10_000_000_000
+"""Integration steps one simulation may take (28 h at dt 1e-5 s; ~10 min of the compiled loop at its
+16.6 M steps/s, docs/BENCHMARKS.md)."""
 
 
 @dataclass
@@ -109,6 +115,13 @@ def simulate_stream(
             f" multiple of dt = {dt_s:g} s"
         )
     n_steps = round(duration_s / dt_s)
+    rows = -(-n_steps // decim)
+    if rows > MAX_SAMPLES or n_steps > MAX_STEPS:
+        raise SimulationError(
+            f"duration {duration_s:g} s is {rows:.3g} samples at {rate_hz:g} Hz ({n_steps:.3g} steps of"
+            f" {dt_s:g} s): a simulation writes at most {MAX_SAMPLES:.0e} samples and takes at most"
+            f" {MAX_STEPS:.0e} steps; shorten --duration or lower --rate"
+        )
     profile = _as_profile(input)
     load = _as_profile(tau_ext)
     # A chunk is a whole number of sample periods, so every chunk starts on a sample.

@@ -25,6 +25,8 @@ import yaml
 from drivers.cia402 import EMCY_HEARTBEAT, State, decode_statusword
 from drivers.hardware_rig import RAW_CAN_LOG
 from model.errors import UserInputError
+from model.params import load_model
+from model.simulate import simulate_stream
 from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.interface import Block
 from rig.runfile import read_run
@@ -413,6 +415,9 @@ def bad_files(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )
     (folder / "huge.yaml").write_text("# padding\n" * 200_000)
     (folder / "a-folder.yaml").mkdir()
+    # A SYNC period of 5e9 µs: more than the drive's 0x1006 (UNSIGNED32) holds.
+    slow = yaml.safe_load((RIG_DIR / "virtual-can.yaml").read_text()) | {"sample_rate_hz": 0.0002}
+    (folder / "slow-rig.yaml").write_text(yaml.safe_dump(slow))
     return folder
 
 
@@ -429,6 +434,10 @@ def bad_files(tmp_path_factory: pytest.TempPathFactory) -> Path:
         (["run", "pulse", "--rig", "{bad}/deep.yaml"], "nested deeper than a rig file is"),
         (["run", "pulse", "--rig", "{bad}/a-folder.yaml"], "is a folder, not a rig file"),
         (["run", "pulse", "--rig", "sim", "--set", "hold_s=[1,"], "the value is not YAML"),
+        (
+            ["run", "pulse", "--rig", "{bad}/slow-rig.yaml"],
+            "asks what the drive's EDS refuses: 0x1006:00 = 5000000000",
+        ),
         (["fit", "--data", "latest", "--model", "seed", "--out", "{bad}/no/such/m.yaml"], "does not exist"),
     ],
 )
@@ -512,3 +521,26 @@ def test_a_run_of_plausible_values_is_still_read(tmp_path: Path) -> None:
     text = f"t,i_cmd,theta_m\n{t0},9.5,2.1e7\n{t0 + 0.001},-9.5,2.1e7\n"
     run = read_run(_csv_run(tmp_path, text, {"sample_rate_hz": 1000}))
     assert run.sample_rate_hz == 1000 and run["theta_m"][0] == 2.1e7
+
+
+def test_a_simulation_too_long_to_write_is_refused_before_its_first_step(tmp_path: Path) -> None:
+    with pytest.raises(UserInputError, match=r"at most 1e\+08 samples"):
+        simulate_stream(load_model("seed"), 1.0, 1e9)  # 1e12 samples at 1 kHz: ~80 TB
+    out = tmp_path / "long.parquet"
+    result = hdrig(
+        tmp_path / "home",
+        "simulate",
+        "--model",
+        "seed",
+        "--input",
+        "1",
+        "--duration",
+        "1e9",
+        "--out",
+        str(out),
+    )
+    no_traceback(result.stderr)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert "duration 1e+09 s is 1e+12 samples at 1000 Hz" in result.stderr and not out.exists()
+    # The bound leaves room for long runs: 10 h at 1 kHz is accepted (and not run here).
+    assert simulate_stream(load_model("seed"), 1.0, 36_000.0).rows == 36_000_000
