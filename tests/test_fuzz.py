@@ -12,6 +12,7 @@ import io
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -19,6 +20,7 @@ from hypothesis import strategies as st
 from drivers.daq_protocol import FrameDecoder
 from model.errors import UserInputError
 from model.params import load_model
+from model.run import PLAUSIBLE_MAGNITUDE
 from rig.cli import main
 from rig.config import load_rig_config
 from rig.runfile import read_run
@@ -72,8 +74,15 @@ CSV_HEAD = b"t,u,i_cmd,theta_m\n0,0,0,0\n0.001,1,0.1,0\n"
     ).map(b"".join)
 )
 def test_a_csv_run_file_of_any_bytes_reads_or_is_one_user_error(body: bytes) -> None:
-    with contextlib.suppress(UserInputError):
-        read_run(_write(CSV_HEAD + body, ".csv"))
+    try:
+        run = read_run(_write(CSV_HEAD + body, ".csv"))
+    except UserInputError:
+        return
+    # What is accepted is plausible: no 1e300 A reaches a fit.
+    for name, limit in PLAUSIBLE_MAGNITUDE.items():
+        if name in run:
+            assert np.all(np.abs(run[name]) <= limit), name
+    assert run.sample_rate_hz > 0
 
 
 @FUZZ
