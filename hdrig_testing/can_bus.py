@@ -12,6 +12,10 @@ import uuid
 from drivers.can_bus import BusSettings, CanBusError
 
 TEST_BUS_ENV = "HDRIG_TEST_CAN"
+TWIN_SYNC_TIMEOUT_S = 2.0
+"""`sync_timeout_s` for a drive twin on this machine, as configs/rigs/virtual-can.yaml's: a busy machine
+holds its answer back (measured > 250 ms with two CPU hogs beside the tests on 2 cores), which is no lost
+drive. The driver's default (10 cycles, ≥ 20 ms) is for a drive on a bus of its own."""
 
 
 def bus_settings_for_test(name: str) -> BusSettings:

@@ -21,7 +21,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable
-from typing import Literal, Protocol
+from typing import Final, Literal, Protocol
 
 import numpy as np
 
@@ -56,19 +56,46 @@ _I32 = 2**31
 
 
 class PlantStateSource:
-    """The present state of a plant stepped by someone else (the CANopen twin).
+    """The state of a plant stepped by someone else (the CANopen twin), as it was at given host times.
 
-    The twin asks when a frame's last sample is due, so all samples of a frame get the state of that
-    moment: use BLOCK 1 for one reading per sample. The compiled kernel holds the GIL while it
-    integrates, so a read never sees half a step.
+    The stepper calls `record(t_host_s)` after each step (t: when the step's SYNC was taken); a sample
+    gets the state last recorded at or before its time, or the present state before any record. The
+    DAQ twin's thread can fall behind its sample clock on a loaded machine (measured: stalls of up to
+    140 ms with both cores busy) and then sends every due frame at once; each still carries the state
+    of its own time, as a board sampling in hardware does. Reading the present state instead would date
+    it back to the stalled samples' times, an alignment error the host's drivers did not make. The DAQ
+    twin asks at host times (`source_clock="host"`).
     """
+
+    HISTORY: Final = 1024
+    """States kept: about a second of SYNCs at 1 kHz, longer than any stall measured."""
 
     def __init__(self, plant: Plant) -> None:
         self.plant = plant
+        self._lock = threading.Lock()
+        self._t_s = np.full(self.HISTORY, -math.inf)
+        self._theta_m = np.zeros(self.HISTORY)
+        self._theta_l = np.zeros(self.HISTORY)
+        self._count = 0
+
+    def record(self, t_host_s: float) -> None:
+        """Keep the plant's present state as its state from `t_host_s` on (times never go back)."""
+        x = self.plant.x
+        with self._lock:
+            i = self._count % self.HISTORY
+            self._t_s[i], self._theta_m[i], self._theta_l[i] = t_host_s, x[k.X_THETA_M], x[k.X_THETA_L]
+            self._count += 1
 
     def __call__(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x = self.plant.x
-        return np.full(t_s.shape, x[k.X_THETA_M]), np.full(t_s.shape, x[k.X_THETA_L])
+        with self._lock:
+            if not self._count:
+                x = self.plant.x
+                return np.full(t_s.shape, x[k.X_THETA_M]), np.full(t_s.shape, x[k.X_THETA_L])
+            order = np.roll(np.arange(self.HISTORY), -(self._count % self.HISTORY))  # oldest first
+            t, theta_m, theta_l = self._t_s[order], self._theta_m[order], self._theta_l[order]
+        # Before the oldest state kept: the oldest (a stall longer than the history).
+        i = np.clip(np.searchsorted(t, t_s, side="right") - 1, int(np.argmax(t > -math.inf)), None)
+        return theta_m[i], theta_l[i]
 
 
 class _RefusedError(Exception):
@@ -202,10 +229,13 @@ class DaqTwin:
         serial_number: str = "SIM0001",
         fifo_bytes: int = 65536,
         clock: Callable[[], float] = time.monotonic,
+        source_clock: Literal["device", "host"] = "device",
     ) -> None:
         """`clock_offset_s`: device clock minus `clock` (None: the device clock starts at 0 now, as a
-        board's does at power-up); `drift_ppm`: how much faster the device clock runs."""
+        board's does at power-up); `drift_ppm`: how much faster the device clock runs; `source_clock`:
+        the times `source` is asked at, the device's or `clock`'s (a `PlantStateSource`'s)."""
         self.source = source
+        self._source_clock = source_clock
         self.encoder_counts_per_rev = encoder_counts_per_rev
         self.load_noise_rad = load_noise_rad
         self.cap_um_per_count = cap_um_per_count
@@ -266,6 +296,10 @@ class DaqTwin:
     def device_us(self) -> int:
         """The device clock [µs]."""
         return math.floor((self._device0_s + (self._clock() - self._host0_s) * self._rate_factor) * 1e6)
+
+    def host_time_s(self, t_device_s: np.ndarray) -> np.ndarray:
+        """Device times [s] on `clock` (the inverse of `device_us`)."""
+        return self._host0_s + (t_device_s - self._device0_s) / self._rate_factor
 
     def inject_garbage(self, data: bytes) -> None:
         """Put `data` on the line just before the next data frame (tests: line noise)."""
@@ -428,11 +462,14 @@ class DaqTwin:
 
     def _zero(self, args: list[str]) -> str:
         self._not_streaming()
-        theta_m, _ = self.source(np.array([self.device_us() * 1e-6]))
+        theta_m, _ = self._source_at(np.array([self.device_us() * 1e-6]))
         self._zero_counts = int(self._raw_counts(theta_m)[0])
         return ""
 
     # --- sampling ------------------------------------------------------------------------------------------
+
+    def _source_at(self, t_device_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.source(t_device_s if self._source_clock == "device" else self.host_time_s(t_device_s))
 
     def _due_us(self, seq: int) -> int:
         return self._first_us + ((seq + 1) * self.samples_per_frame - 1) * self.period_us
@@ -466,7 +503,7 @@ class DaqTwin:
     def _frame(self, seq: int) -> bytes:
         n, period = self.samples_per_frame, self.period_us
         t_us = self._first_us + (seq * n + np.arange(n)) * period
-        theta_m, theta_l = self.source(t_us * 1e-6)
+        theta_m, theta_l = self._source_at(t_us * 1e-6)
         counts = self._raw_counts(np.asarray(theta_m)) - self._zero_counts
         noisy_l = np.asarray(theta_l) + self.load_noise_rad * self._rng.standard_normal(n)
         cap = np.rint(noisy_l * (self.lever_radius_m * 1e6 / self.cap_um_per_count))

@@ -27,7 +27,7 @@ from drivers.tcp_can import CanHub
 from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
 from sim_backend.cia402_twin import Cia402Twin
-from sim_backend.daq_twin import DaqTwin, PlantStateSource
+from sim_backend.daq_twin import DaqTwin
 
 logger = logging.getLogger(__name__)
 
@@ -48,7 +48,7 @@ def serve_twins(
     twin = daq = None
     try:
         twin = Cia402Twin(hub.bus(), settings.node_id, model, config, settings.eds_path())
-        daq = DaqTwin.from_sensors(PlantStateSource(twin.plant), config.sensors)
+        daq = DaqTwin.from_sensors(twin.measured, config.sensors, source_clock="host")
         announce(json.dumps({"can": hub.channel, "daq": daq.url, "node_id": settings.node_id}))
         stop.wait()
     finally:

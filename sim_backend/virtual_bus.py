@@ -4,7 +4,7 @@ It builds, in this process, the CiA 402 drive twin (`Cia402Twin`, running the ri
 on a python-can `virtual` channel of its own (the config's `canopen.channel` plus a suffix unique to
 the rig instance, so rigs and tests never share a bus; another interface, a Linux vcan, is used as
 given), and the DAQ board's twin (`DaqTwin`) on a pty,
-measuring that very plant (`PlantStateSource`). On them it opens a `HardwareRig`: the same servo
+measuring that very plant (`Cia402Twin.measured`). On them it opens a `HardwareRig`: the same servo
 driver, DAQ driver, alignment and envelope as on a bench, so a run exercises the real driver code end
 to end.
 
@@ -54,7 +54,7 @@ from drivers.serial_daq import SerialDaq
 from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
 from sim_backend.cia402_twin import LOAD_COB_ID, Cia402Twin
-from sim_backend.daq_twin import DaqTwin, PlantStateSource
+from sim_backend.daq_twin import DaqTwin
 from sim_backend.twin_process import serve_twins, watchdog_grace_s
 
 TWINS: Final = ("in-process", "process")
@@ -119,10 +119,11 @@ class VirtualCanRig(HardwareRig):
             )
             self.twin = Cia402Twin(open_bus(bus), settings.node_id, self.model, config, settings.eds_path())
             self.daq_twin = DaqTwin.from_sensors(
-                PlantStateSource(self.twin.plant),
+                self.twin.measured,
                 config.sensors,
                 transport=stream.transport,
                 drift_ppm=stream.drift_ppm,
+                source_clock="host",
             )
             servo_daq = SerialDaq(self.daq_twin.url, timeout_s=stream.timeout_s, clock=time.monotonic)
             servo = CanopenServo(settings, DriveLimits.from_rig_config(config), 1.0 / config.sample_rate_hz)

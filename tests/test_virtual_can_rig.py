@@ -147,6 +147,7 @@ class PacedRun:
     rows: dict[str, np.ndarray]
     cycles: dict[str, np.ndarray]  # CycleLog
     plant: dict[str, np.ndarray]  # the drive twin's own samples: the truth
+    clock_uncertainty_s: float  # the DAQ clock estimates' largest ± (half the quickest round trip)
 
 
 PACED_SPEED_RAD_S = 20.0  # slow enough that a cycle's motion is small beside the kinematic error
@@ -166,9 +167,11 @@ def paced(quiet_heap: None) -> PacedRun:
         )
         assert result.aborted is None
         rig.disable()
+        assert rig.daq is not None
+        uncertainty = max(e.uncertainty_s for e in rig.daq.clock_model.estimates)
         rows = {name: np.concatenate([b[name] for b in blocks]) for name in blocks[0]}
         plant = {name: np.array([s[name] for s in rig.plant_log]) for name in rig.plant_log[0]}
-        return PacedRun(rows, rig.cycle_log.arrays(), plant)
+        return PacedRun(rows, rig.cycle_log.arrays(), plant, uncertainty)
 
 
 def test_theta_l_is_the_daq_measurement_of_the_plant(paced: PacedRun) -> None:
@@ -177,8 +180,11 @@ def test_theta_l_is_the_daq_measurement_of_the_plant(paced: PacedRun) -> None:
     error = np.abs(paced.rows["theta_l"][steady] - truth)
     stand_in_error = np.abs(R * paced.rows["theta_m"][steady] - truth)  # what r·θ_m would have given
     # θ_l is interpolated at each SYNC between DAQ samples 0.5 ms apart, read from a plant the twin
-    # steps at each SYNC: within the output's motion over two cycles (ripple included), plus noise.
-    motion = np.max(np.abs(truth[2:] - truth[:-2])) + 5 * 2e-6
+    # steps at each SYNC: within the output's motion over two cycles (ripple included), plus noise, plus
+    # the motion over the DAQ clock's stated uncertainty (on a busy machine its quickest exchange can be
+    # slow: the rig promises alignment within it, not better).
+    speed = np.max(np.abs(np.diff(truth))) / PERIOD_S
+    motion = np.max(np.abs(truth[2:] - truth[:-2])) + speed * paced.clock_uncertainty_s + 5 * 2e-6
     np.testing.assert_array_equal(paced.plant["t"], paced.rows["t"])  # the same samples, row by row
     assert np.percentile(error, 99) <= motion < np.percentile(stand_in_error, 99)
 
@@ -189,10 +195,12 @@ def test_the_daq_stream_is_aligned_with_the_servo_by_host_time(paced: PacedRun) 
     # in steps at each SYNC, and interpolating between DAQ samples 0.5 ms apart blends the step: half a
     # cycle of motion on average (measured 0.5-0.8 ω·T, 99 % within 1.0-1.6 ω·T; ω·T = 0.02 rad). A clock
     # error of 2 ms (measured: median 2.8 ω·T) fails; one of a chunk would be 250 ω·T.
+    # The clock estimate's stated uncertainty (half its quickest round trip) widens both bounds.
     offset = (paced.cycles["daq_theta_m_rad"] - paced.rows["theta_m"])[steady]
     step = PACED_SPEED_RAD_S * PERIOD_S
-    assert abs(np.median(offset)) <= 1.5 * step
-    assert np.percentile(np.abs(offset), 99) <= 3 * step
+    clock = PACED_SPEED_RAD_S * paced.clock_uncertainty_s
+    assert abs(np.median(offset)) <= 1.5 * step + clock
+    assert np.percentile(np.abs(offset), 99) <= 3 * step + clock
 
 
 # --- refusals and life cycle -------------------------------------------------------------------------
