@@ -256,7 +256,9 @@ def start_run(
     body: RunRequest, request: Request, response: Response, who: Operator
 ) -> RunDocument | JobDocument:
     try:
-        plan = actions.plan_run(body.experiment, body.params, keep_going=body.keep_going)
+        plan = actions.plan_run(
+            body.experiment, body.params, keep_going=body.keep_going, unit=body.unit, tags=body.tags
+        )
     except UserInputError as exc:
         raise _named(exc, body) from None
     worker = _worker(request)
@@ -285,17 +287,31 @@ def _named(exc: UserInputError, body: RunRequest) -> ProblemError:
 
 
 @router.get("/runs", response_model=list[RunDocument], tags=["runs"], summary="the catalog, and queued runs")
-def runs(request: Request, who: Viewer) -> list[RunDocument]:
+def runs(
+    request: Request,
+    who: Viewer,
+    unit: Annotated[
+        str | None, Query(max_length=100, description="gear unit serial, exact or a glob (HD25-*)")
+    ] = None,
+    rig: Annotated[str | None, Query(max_length=100, description="rig name, exact or a glob")] = None,
+    tag: Annotated[
+        list[str] | None, Query(max_length=100, description="a tag every run listed carries")
+    ] = None,
+    operator: Annotated[
+        str | None, Query(max_length=100, description="who started it, exact or a glob")
+    ] = None,
+) -> list[RunDocument]:
     worker = _worker(request)
     owners = {run_id: job.owner for job in worker.jobs() for run_id in job.runs}
     listed: dict[str, RunDocument] = {}
-    for document in actions.list_runs(_store(request)):
+    filtered = any(v is not None for v in (unit, rig, tag, operator))
+    for document in actions.list_runs(_store(request), unit=unit, rig=rig, tags=tag or (), operator=operator):
         live = worker.live_run(document.id) if document.status == RunStatus.RUNNING else None
         if live is not None:
             live.samples = document.samples
         listed[document.id] = live or document
         listed[document.id].owner = owners.get(document.id)
-    for job in worker.jobs():
+    for job in [] if filtered else worker.jobs():  # queued runs have no catalog entry to search yet
         if job.status == JobStatus.QUEUED:
             for run_id in job.runs:
                 queued = worker.live_run(run_id)

@@ -163,17 +163,39 @@ class HdrigClient:
         params: dict[str, Any] | None = None,
         queue: bool = False,
         keep_going: bool = False,
+        unit: str | None = None,
+        tags: Sequence[str] = (),
     ) -> RunDocument | JobDocument:
         """Start an experiment: its run's document (status queued or running). The campaign answers
-        with its job's document. A busy rig raises ServiceInputError 409 unless `queue`."""
-        body = {"experiment": experiment, "params": params or {}, "queue": queue, "keep_going": keep_going}
+        with its job's document. A busy rig raises ServiceInputError 409 unless `queue`. `unit`: the gear
+        on the bench (default: the rig file's); `tags`: free tags for the catalog."""
+        body: dict[str, Any] = {
+            "experiment": experiment,
+            "params": params or {},
+            "queue": queue,
+            "keep_going": keep_going,
+            "tags": list(tags),
+        }
+        if unit is not None:
+            body["unit"] = unit
         answer = self._post("/runs", body)
         if "kind" in answer:
             return JobDocument.model_validate(answer)
         return RunDocument.model_validate(answer)
 
-    def runs(self) -> list[RunDocument]:
-        return [RunDocument.model_validate(r) for r in self._get("/runs")]
+    def runs(
+        self,
+        unit: str | None = None,
+        rig: str | None = None,
+        tags: Sequence[str] = (),
+        operator: str | None = None,
+    ) -> list[RunDocument]:
+        """The catalog, or the runs of a unit, rig or operator (exact or a glob such as `HD25-*`) that carry
+        every one of `tags`."""
+        query: list[tuple[str, str]] = [("tag", t) for t in tags]
+        query += [(k, v) for k, v in (("unit", unit), ("rig", rig), ("operator", operator)) if v is not None]
+        answer = self._request("GET", "/runs", params=query).json()  # `tag` repeated: a list, not a dict
+        return [RunDocument.model_validate(r) for r in answer]
 
     def run(self, run_id: str) -> RunDocument:
         return RunDocument.model_validate(self._get(f"/runs/{run_id}"))

@@ -69,10 +69,12 @@ class RemoteLab:
         keep_going: bool,
         progress: Progress,
         landed: Landed,
+        unit: str | None = None,
+        tags: Sequence[str] = (),
     ) -> list[RunDocument]:
         if rig is not None:
             self._check_rig(rig)
-        started = self.client.start_run(experiment, params, keep_going=keep_going)
+        started = self.client.start_run(experiment, params, keep_going=keep_going, unit=unit, tags=tags)
         runs: list[RunDocument] = []
         try:
             job = self._follow(started.id, progress, runs, landed)
@@ -118,8 +120,14 @@ class RemoteLab:
                 return job
             time.sleep(POLL_S)
 
-    def list_runs(self) -> list[RunDocument]:
-        return self.client.runs()
+    def list_runs(
+        self,
+        unit: str | None = None,
+        rig: str | None = None,
+        tags: Sequence[str] = (),
+        operator: str | None = None,
+    ) -> list[RunDocument]:
+        return self.client.runs(unit=unit, rig=rig, tags=tags, operator=operator)
 
     def run_document(self, run_id: str) -> RunDocument:
         return self.client.run(run_id)

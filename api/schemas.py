@@ -23,6 +23,14 @@ class RunRequest(Request):
     )
     queue: bool = Field(default=False, description="wait for the rig when it is busy, instead of 409")
     keep_going: bool = Field(default=False, description="campaign: go on after a run aborts")
+    unit: str | None = Field(
+        default=None,
+        max_length=100,
+        description="the gear unit's serial number on the bench (default: the rig file's `unit:`)",
+    )
+    tags: list[str] = Field(
+        default_factory=list, max_length=50, description="free tags put on each run, to search the catalog by"
+    )
 
 
 class AnalysisRequest(Request):

@@ -224,7 +224,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 bar.write(_summary(run))
 
         try:
-            lab.run(name, params, args.rig, args.keep_going, bar, landed)
+            lab.run(name, params, args.rig, args.keep_going, bar, landed, unit=args.unit, tags=args.tag)
         except KeyboardInterrupt as stop:  # the lab has stopped the motion and seen the run end
             _say(f"hdrig: interrupted; quick stop; run {runs[-1].id if runs else '-'} kept")
             return _interrupted_status(stop)
@@ -242,7 +242,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_runs_list(args: argparse.Namespace) -> int:
     lab = _lab(args)
-    runs = lab.list_runs()
+    runs = lab.list_runs(unit=args.unit, rig=args.rig, tags=args.tag, operator=args.operator)
     if args.json:
         return _print_json(runs)
     if not runs:
@@ -361,6 +361,10 @@ def _analysis(args: argparse.Namespace, action: Callable[..., Any], **options: A
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    if args.batch:
+        return _fit_batch(args)
+    if args.out is None:
+        raise UserInputError("fit: --out FILE is required (the fitted model file to write), or --batch")
     result = _analysis(args, _lab(args).fit, joint=not args.no_joint)
     if args.json:
         return _print_json(result)
@@ -373,6 +377,33 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print(f"model: {result.model_file}")
     if result.report is not None:
         print(f"report: {result.report}")
+    return 0
+
+
+def _fit_batch(args: argparse.Namespace) -> int:
+    """`hdrig fit --data 'unit=HD25-*' --batch`: every unit's fit on Dask, and the fleet report."""
+    from rig.core import fleet
+    from rig.progress import ProgressBar
+    from rig.store import RunStore
+
+    if getattr(args, "server", None):
+        raise UserInputError("fit --batch runs on this machine's store and a Dask cluster, not over --server")
+    if args.out is not None or args.map:
+        raise UserInputError(
+            "fit --batch: each unit's model goes to the catalog and its folder, not --out/--map"
+        )
+    with ProgressBar(enabled=not args.quiet) as bar:
+        document = fleet.batch_fit(
+            RunStore(), args.data, args.model, args.scheduler, args.workers, not args.no_joint, bar
+        )
+    if args.json:
+        return _print_json(document)
+    for unit in document.units:
+        flagged = [name for name, p in unit.parameters.items() if p.outlier]
+        determined = sum(p.determined for p in unit.parameters.values())
+        state = unit.error if unit.status != "complete" else f"{determined} parameters determined"
+        print(f"{unit.unit}: {state}" + (f"; outlier in {', '.join(flagged)}" if flagged else ""))
+    print(f"fleet report: {document.report}")
     return 0
 
 
@@ -636,11 +667,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="campaign: go on to the next experiment after a run aborts (default: stop there)",
     )
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--unit", metavar="SERIAL", help="the gear unit on the bench (default: the rig file's)")
+    run.add_argument(
+        "--tag", action="append", default=[], metavar="TAG", help="a free tag for the catalog (repeatable)"
+    )
     run.set_defaults(handler=cmd_run)
 
     runs = _group(sub, "runs", "the run catalog: list, show, analyze and export runs")
     listed = "every run: id, experiment, status, started, samples"
-    _command(runs, "list", cmd_runs_list, listed, json="the catalog as a JSON list")
+    searched = _command(runs, "list", cmd_runs_list, listed, json="the catalog as a JSON list")
+    searched.add_argument("--unit", metavar="SERIAL", help="only this gear unit's runs (a glob: 'HD25-*')")
+    searched.add_argument("--rig", metavar="NAME", help="only this rig's runs (exact or a glob)")
+    searched.add_argument("--operator", metavar="WHO", help="only the runs this key name or OS user started")
+    searched.add_argument(
+        "--tag", action="append", default=[], metavar="TAG", help="only runs with this tag (repeatable: all)"
+    )
     shown = "one run: catalog entry, metrics, artifacts"
     _run_id(_command(runs, "show", cmd_runs_show, shown, json="one JSON object"))
     again = "analyze a complete run again (tables, plots, metrics), e.g. after an interruption"
@@ -680,9 +721,21 @@ def build_parser() -> argparse.ArgumentParser:
         " determine are reported as such and keep the starting model's value.",
     )
     _analysis_arguments(fit, "starting model: preset name or file")
-    fit.add_argument("--out", required=True, metavar="FILE", help="fitted model file to write (.yaml/.json)")
+    fit.add_argument(
+        "--out", metavar="FILE", help="fitted model file to write (.yaml/.json); not with --batch"
+    )
     fit.add_argument("--report", type=Path, metavar="DIR", help="validation table, plots and report.md")
     fit.add_argument("--no-joint", action="store_true", help="staged estimates only (no joint refinement)")
+    fit.add_argument(
+        "--batch",
+        action="store_true",
+        help="--data selects units (unit=PATTERN, rig=PATTERN, tag=PATTERN): each fitted on Dask, a fleet"
+        " report",
+    )
+    fit.add_argument(
+        "--scheduler", metavar="ADDRESS", help="--batch: a Dask scheduler (default: a local cluster)"
+    )
+    fit.add_argument("--workers", type=int, metavar="N", help="--batch: the local cluster's worker processes")
 
     gaps = _command(
         sub,

@@ -51,13 +51,23 @@ class Lab(Protocol):
         keep_going: bool,
         progress: Progress,
         landed: Landed,
+        unit: str | None = None,
+        tags: Sequence[str] = (),
     ) -> list[RunDocument]:
         """Play an experiment (or the campaign) to its end; each run's document, also told to `landed`
         as it ends. On KeyboardInterrupt the motion is stopped first, the run lands `aborted` with its
         data, and KeyboardInterrupt is raised again."""
         ...
 
-    def list_runs(self) -> list[RunDocument]: ...
+    def list_runs(
+        self,
+        unit: str | None = None,
+        rig: str | None = None,
+        tags: Sequence[str] = (),
+        operator: str | None = None,
+    ) -> list[RunDocument]:
+        """The catalog's runs, or those of a unit, rig or operator (exact or a glob) with all `tags`."""
+        ...
 
     def run_document(self, run_id: str) -> RunDocument: ...
 
@@ -117,6 +127,8 @@ class LocalLab:
         keep_going: bool,
         progress: Progress,
         landed: Landed,
+        unit: str | None = None,
+        tags: Sequence[str] = (),
     ) -> list[RunDocument]:
         from rig.config import load_rig_config
         from rig.core.worker import RigWorker
@@ -127,7 +139,7 @@ class LocalLab:
                 f"run {experiment}: --rig RIG is required (a rig file, or a name in configs/rigs)"
             )
         config = load_rig_config(rig)
-        plan = actions.plan_run(experiment, params, keep_going=keep_going)
+        plan = actions.plan_run(experiment, params, keep_going=keep_going, unit=unit, tags=tags)
         runs: list[RunDocument] = []
 
         def land(run: RunDocument) -> None:
@@ -148,8 +160,14 @@ class LocalLab:
             raise job.exception  # bad input found late, a fault before any run, or a bug (its traceback)
         return runs
 
-    def list_runs(self) -> list[RunDocument]:
-        return actions.list_runs(self.store)
+    def list_runs(
+        self,
+        unit: str | None = None,
+        rig: str | None = None,
+        tags: Sequence[str] = (),
+        operator: str | None = None,
+    ) -> list[RunDocument]:
+        return actions.list_runs(self.store, unit=unit, rig=rig, tags=tags, operator=operator)
 
     def run_document(self, run_id: str) -> RunDocument:
         return actions.run_document(self.store, run_id)

@@ -48,6 +48,9 @@ class RunHooks:
     on_block: Callable[[str, Block], None] | None = None  # each block of samples as it is recorded
     on_segment: Callable[[str, Segment], None] | None = None  # each segment as it begins
     run_id: str | None = None  # an id reserved beforehand (the service's queued runs)
+    unit: str | None = None  # the gear on the bench, when not the rig file's `unit:`
+    operator: str | None = None  # who started the run (an API key's name); None: this process' OS user
+    tags: list[str] = field(default_factory=list)  # free tags for the catalog
 
 
 @dataclass
@@ -171,6 +174,9 @@ def _play(
         meta=meta,
         background=True,  # the control loop appends; a writer thread takes the disk's time
         run_id=hooks.run_id,
+        unit=hooks.unit or config.unit,
+        operator=hooks.operator,
+        tags=hooks.tags,
     )
     if hooks.on_start is not None:
         hooks.on_start(writer.run_id)
@@ -220,7 +226,8 @@ def _analyze(
         artifacts += experiment.plot(run, results, params, ctx, plot_dir)
         store.set_metrics(run_id, results.metrics)
         if results.checkpoints:
-            store.set_checkpoints(run_id, ctx.config.unit, results.checkpoints)
+            # the gear the run recorded (its own unit, else the rig file's), so the trend follows the gear
+            store.set_checkpoints(run_id, store.get(run_id)["unit"] or ctx.config.unit, results.checkpoints)
     except Exception:
         store.set_analysis(run_id, AnalysisState.FAILED)
         raise

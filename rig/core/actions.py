@@ -44,7 +44,7 @@ from rig.interface import ModeRefusedError, Rig
 from rig.runfile import json_text
 from rig.runner import Progress, RunHooks, RunOutcome, analyze_stored, make_params, run_experiment
 from rig.status import RunStatus
-from rig.store import ARTIFACTS_DIR, RunStore, load_runs, new_run_id
+from rig.store import ARTIFACTS_DIR, RunStore, check_tags, load_runs, new_run_id
 
 if TYPE_CHECKING:
     from model.gaps import GapsResult
@@ -90,13 +90,19 @@ def plan_run(
     params: dict[str, Any] | None = None,
     keep_going: bool = False,
     experiments: Sequence[str] = CAMPAIGN_ORDER,
+    unit: str | None = None,
+    tags: Sequence[str] = (),
 ) -> RunPlan:
     """Validate a start request before the rig is touched.
 
     One experiment takes its parameters (`{"hold_s": 0.5}`); the campaign takes them per experiment
     (`{"speed-sweep": {"hold_s": 0.5}}`) and plays `experiments` in turn (all of them by default).
-    Unknown experiments and bad values are one-line errors.
+    Unknown experiments and bad values are one-line errors. `unit` (the gear on the bench, instead of
+    the rig file's) and free `tags` go into the catalog with each run.
     """
+    tags = check_tags(tags)
+    if unit is not None:
+        check_tags([unit])  # a serial number: the same characters as a tag
     given = dict(params or {})
     if experiment == CAMPAIGN:
         unknown = sorted(set(given) - set(CAMPAIGN_ORDER))
@@ -117,7 +123,7 @@ def plan_run(
             raise UserInputError(f"run campaign: params.{name} must be an object of parameters")
         checked = make_params(EXPERIMENTS[name], values)
         runs.append(PlannedRun(experiment=name, params=checked.model_dump(mode="json")))
-    return RunPlan(experiment=experiment, runs=runs, keep_going=keep_going)
+    return RunPlan(experiment=experiment, runs=runs, keep_going=keep_going, unit=unit, tags=list(tags))
 
 
 def params_from_pairs(experiment: str, pairs: Sequence[str]) -> dict[str, Any]:
@@ -175,7 +181,9 @@ def execute_plan(
         report = None
         if progress is not None:
             report = _share_of(progress, index, count)
-        run_hooks = hooks if index == 0 or hooks is None else replace(hooks, run_id=None)
+        run_hooks = replace(hooks or RunHooks(), unit=plan.unit, tags=list(plan.tags))
+        if index:
+            run_hooks = replace(run_hooks, run_id=None)
         try:
             outcome = run_experiment(
                 planned.experiment, config, planned.params, store, report, rig, run_hooks
@@ -240,12 +248,23 @@ def _document(store: RunStore, entry: dict[str, Any], with_artifacts: bool) -> R
         run_dir=str(run_dir),
         artifacts=_artifacts(run_dir) if with_artifacts else [],
         analysis=entry.get("analysis"),
+        unit=entry.get("unit"),
+        operator=entry.get("operator"),
+        tags=entry.get("tags", []),
     )
 
 
-def list_runs(store: RunStore) -> list[RunDocument]:
-    """Every run in the catalog, oldest first (artifacts are listed by `show_run`)."""
-    return [_document(store, entry, with_artifacts=False) for entry in store.list_runs()]
+def list_runs(
+    store: RunStore,
+    unit: str | None = None,
+    rig: str | None = None,
+    tags: Sequence[str] = (),
+    operator: str | None = None,
+) -> list[RunDocument]:
+    """The runs in the catalog, oldest first (artifacts are listed by `show_run`): every one, or those of
+    a `unit`, `rig` or `operator` (exact, or a glob such as `HD25-*`) carrying all of `tags`."""
+    found = store.list_runs(unit=unit, rig=rig, tags=tags, operator=operator)
+    return [_document(store, entry, with_artifacts=False) for entry in found]
 
 
 def run_document(store: RunStore, run_id: str, outcome: RunOutcome | None = None) -> RunDocument:

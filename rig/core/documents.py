@@ -49,6 +49,10 @@ class RunPlan(Document):
     experiment: str = Field(description="an experiment name, or `campaign` for all of them in turn")
     runs: list[PlannedRun] = Field(description="the runs to play, in order")
     keep_going: bool = Field(default=False, description="campaign: go on after a run aborts")
+    unit: str | None = Field(
+        default=None, description="the gear unit's serial number on the bench (default: the rig file's)"
+    )
+    tags: list[str] = Field(default_factory=list, description="free tags put on each run, to search by")
 
 
 class RunDocument(Document):
@@ -71,6 +75,11 @@ class RunDocument(Document):
     run_dir: str | None = Field(default=None, description="the run's folder (data, artifacts/)")
     artifacts: list[str] = Field(default_factory=list, description="tables, results.json and plots")
     owner: str | None = Field(default=None, description="who started it (the API key's name; None: CLI)")
+    unit: str | None = Field(default=None, description="the gear unit's serial number, as the run has it")
+    operator: str | None = Field(
+        default=None, description="who started it, as the catalog keeps it: an API key's name or the OS user"
+    )
+    tags: list[str] = Field(default_factory=list, description="free tags (`hdrig runs list --tag`)")
     analysis: str | None = Field(
         default=None,
         description="its analysis: running, done, interrupted (the process died: `hdrig runs analyze RUN`"

@@ -489,7 +489,9 @@ class RigWorker(_JobThread):
                 EventKind.SAMPLES, _decimated(rows, self._mode.get(run_id)), run_id=run_id, job_id=job.id
             )
 
-        return RunHooks(on_start=started, on_block=block, on_segment=segment, run_id=first_run_id)
+        return RunHooks(
+            on_start=started, on_block=block, on_segment=segment, run_id=first_run_id, operator=job.owner
+        )
 
     def _run_ended(self, job: Job, document: RunDocument) -> None:
         document.owner = job.owner
