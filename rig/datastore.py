@@ -61,16 +61,6 @@ class RunData:
         """A catalog path (`runs/<id>/data.parquet`) as a user can find it: a local path or a URL."""
         return str(Path(self.root) / relative) if self.is_local else f"{self.url}/{relative}"
 
-    def check(self) -> None:
-        """Fail in one line, before a run starts, when the data root cannot be reached or written."""
-        try:
-            if self.is_local:
-                Path(self.root, RUNS_DIR).mkdir(parents=True, exist_ok=True)
-            else:
-                self.fs.ls(self.root.split("/", 1)[0], detail=False)  # the bucket exists and answers
-        except (OSError, PermissionError) as exc:
-            raise StoreError(f"{self.url}: cannot hold the runs' data ({exc})") from None
-
     def make_run_folder(self, run_id: str) -> None:
         if self.is_local:
             Path(self.run_folder(run_id)).mkdir(parents=True, exist_ok=True)
