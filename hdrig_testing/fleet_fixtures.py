@@ -71,13 +71,17 @@ def s3_data(s3: S3Server, monkeypatch: pytest.MonkeyPatch) -> str:
 
 
 @pytest.fixture(scope="module")
-def dask_cluster() -> Iterator[Any]:
-    """A Dask LocalCluster of two worker processes, one thread each, on loopback."""
+def dask_cluster(s3: S3Server) -> Iterator[Any]:
+    """A Dask LocalCluster of two worker processes, one thread each, on loopback; its workers reach the
+    test's S3 server (their environment has its settings, as a real cluster's workers have their own)."""
     try:
         from distributed import LocalCluster
     except ImportError:
         missing("dask/distributed is not installed (`pip install -e '.[fleet]'`; make test installs it)")
-    with LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-    ) as cluster:
-        yield cluster
+    with pytest.MonkeyPatch.context() as patch:
+        for name, value in s3.env.items():
+            patch.setenv(name, value)  # inherited by the worker processes started here
+        with LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+        ) as cluster:
+            yield cluster
