@@ -20,55 +20,64 @@ class InputSpecError(UserInputError):
 
 @dataclass(frozen=True)
 class ProfileKind:
-    """One kind of profile: its keys with defaults (None: required) and its function of time."""
+    """One kind of profile: its keys with defaults (None: required), and its compiled form.
+
+    `vector` checks the values and lays them out for `model.kernel.profile_value` (the run's duration
+    given for a chirp without its own), so the profile is evaluated inside the compiled loop.
+    """
 
     keys: dict[str, float | None]
     help: str
-    evaluate: Callable[[dict[str, float], np.ndarray, float], np.ndarray]
+    vector: Callable[[dict[str, float], float], list[float]]
 
 
-def _step(q: dict[str, float], t: np.ndarray, _: float) -> np.ndarray:
-    return q["offset"] + np.where(t >= q["delay"], q["amp"], 0.0)
+# A profile vector, as model.kernel.profile_value reads it: q[Q_KIND] the kind, q[Q_OFFSET] added to
+# every value, q[Q_AMP] the amplitude (ramp: slope), then per kind in Q_A, Q_B, Q_C: step (delay),
+# sine (freq, phase), ramp (delay), chirps (f0, f1, sweep s), pulse (width, period, delay), staircase
+# (steps, hold). Here rather than in model.kernel: the command line reads KINDS for its help, and
+# model.kernel loads numba (~0.2 s).
+PROFILE_STEP, PROFILE_SINE, PROFILE_RAMP, PROFILE_CHIRP, PROFILE_LOG_CHIRP = range(5)
+PROFILE_PULSE, PROFILE_STAIRCASE, PROFILE_CONST = 5, 6, 7
+Q_KIND, Q_OFFSET, Q_AMP, Q_A, Q_B, Q_C = range(6)
+N_PROFILE = 6
 
 
-def _sine(q: dict[str, float], t: np.ndarray, _: float) -> np.ndarray:
-    return q["offset"] + q["amp"] * np.sin(2 * np.pi * q["freq"] * t + q["phase"])
+def _step(q: dict[str, float], _: float) -> list[float]:
+    return [PROFILE_STEP, q["offset"], q["amp"], q["delay"]]
 
 
-def _ramp(q: dict[str, float], t: np.ndarray, _: float) -> np.ndarray:
-    return q["offset"] + q["slope"] * np.clip(t - q["delay"], 0.0, None)
+def _sine(q: dict[str, float], _: float) -> list[float]:
+    return [PROFILE_SINE, q["offset"], q["amp"], q["freq"], q["phase"]]
 
 
-def _chirp(q: dict[str, float], t: np.ndarray, duration_s: float) -> np.ndarray:
+def _ramp(q: dict[str, float], _: float) -> list[float]:
+    return [PROFILE_RAMP, q["offset"], q["slope"], q["delay"]]
+
+
+def _chirp(q: dict[str, float], duration_s: float) -> list[float]:
     sweep_s = q["duration"] if q["duration"] > 0 else duration_s
     if sweep_s <= 0:
         raise InputSpecError("chirp: needs duration=S or a simulation duration")
-    from scipy.signal import chirp as scipy_chirp  # scipy.signal takes ~0.7 s to import: only for chirps
+    if q["log"] and not q["f0"] * q["f1"] > 0:
+        raise InputSpecError("chirp: log=1 needs f0 and f1 nonzero and of one sign")
+    kind = PROFILE_LOG_CHIRP if q["log"] else PROFILE_CHIRP
+    return [kind, q["offset"], q["amp"], q["f0"], q["f1"], sweep_s]
 
-    method = "logarithmic" if q["log"] else "linear"
-    # scipy's chirp starts at cos(0) = 1; a sine start keeps the input continuous from rest.
-    return q["offset"] + q["amp"] * scipy_chirp(t, q["f0"], sweep_s, q["f1"], method=method, phi=-90)
 
-
-def _pulse(q: dict[str, float], t: np.ndarray, _: float) -> np.ndarray:
+def _pulse(q: dict[str, float], _: float) -> list[float]:
     if q["period"] <= 0 or q["width"] <= 0:
         raise InputSpecError("pulse: width and period must be > 0")
-    phase = np.mod(t - q["delay"], q["period"])
-    on = (t >= q["delay"]) & (phase < q["width"])
-    return q["offset"] + np.where(on, q["amp"], 0.0)
+    return [PROFILE_PULSE, q["offset"], q["amp"], q["width"], q["period"], q["delay"]]
 
 
-def _staircase(q: dict[str, float], t: np.ndarray, _: float) -> np.ndarray:
-    steps = int(q["steps"])
-    if steps < 2 or q["hold"] <= 0:
-        raise InputSpecError("staircase: needs steps ≥ 2 and hold > 0")
-    levels = np.linspace(-q["amp"], q["amp"], steps)
-    index = np.clip((t // q["hold"]).astype(np.int64), 0, steps - 1)
-    return q["offset"] + levels[index]
+def _staircase(q: dict[str, float], _: float) -> list[float]:
+    if q["steps"] < 2 or q["steps"] != int(q["steps"]) or q["hold"] <= 0:
+        raise InputSpecError("staircase: needs a whole number of steps ≥ 2 and hold > 0")
+    return [PROFILE_STAIRCASE, q["offset"], q["amp"], q["steps"], q["hold"]]
 
 
-def _const(q: dict[str, float], t: np.ndarray, _: float) -> np.ndarray:
-    return np.full_like(t, q["value"], dtype=np.float64)
+def _const(q: dict[str, float], _: float) -> list[float]:
+    return [PROFILE_CONST, q["value"], 0.0]
 
 
 KINDS: dict[str, ProfileKind] = {
@@ -103,8 +112,19 @@ class InputProfile:
     kind: str
     values: dict[str, float]
 
+    def vector(self, duration_s: float = 0.0) -> np.ndarray:
+        """The profile as `model.kernel.profile_value` evaluates it (in a run of `duration_s`); a value
+        its kind refuses raises InputSpecError here."""
+        q = np.zeros(N_PROFILE)
+        laid_out = KINDS[self.kind].vector(self.values, duration_s)
+        q[: len(laid_out)] = laid_out
+        return q
+
     def __call__(self, t: np.ndarray, duration_s: float = 0.0) -> np.ndarray:
-        return np.asarray(KINDS[self.kind].evaluate(self.values, np.asarray(t, dtype=np.float64), duration_s))
+        from model import kernel  # numba, only once a profile is evaluated here
+
+        times = np.ascontiguousarray(np.atleast_1d(np.asarray(t, dtype=np.float64)))
+        return np.asarray(kernel.profile_values(self.vector(duration_s), times.ravel()).reshape(times.shape))
 
     @property
     def spec(self) -> str:

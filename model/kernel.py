@@ -20,6 +20,23 @@ import math
 import numpy as np
 from numba import njit
 
+from model.inputs import (  # the profile vector's layout, evaluated by profile_value
+    PROFILE_CHIRP,
+    PROFILE_CONST,
+    PROFILE_LOG_CHIRP,
+    PROFILE_PULSE,
+    PROFILE_RAMP,
+    PROFILE_SINE,
+    PROFILE_STAIRCASE,
+    PROFILE_STEP,
+    Q_A,
+    Q_AMP,
+    Q_B,
+    Q_C,
+    Q_KIND,
+    Q_OFFSET,
+)
+
 # --- float parameter vector -------------------------------------------------------------------
 J_M, J_L, R_GEAR, K_M, K_B, R_ARM, K_S, D_S = range(8)
 S1, S2, S3 = 8, 9, 10
@@ -70,7 +87,7 @@ def _sign(x: float) -> float:
     return 1.0 if x > 0.0 else (-1.0 if x < 0.0 else 0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def position_coulomb(p: np.ndarray, n_harmonics: int, theta_m: float) -> tuple[float, float]:
     """C(θ_m) and P(θ_m) of docs/MODEL.md; the harmonics by angle-addition recurrence (two trig calls)."""
     c = (p[S1] * theta_m + p[S2]) * theta_m + p[S3]
@@ -86,7 +103,7 @@ def position_coulomb(p: np.ndarray, n_harmonics: int, theta_m: float) -> tuple[f
     return c, periodic
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def motor_levels(
     p: np.ndarray,
     flags: np.ndarray,
@@ -132,7 +149,7 @@ def motor_levels(
     return max(moving, 0.0), max(static, 0.0)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def load_levels(p: np.ndarray, law: int, speed: float) -> tuple[float, float]:
     """Load friction magnitudes (moving at |ω_l| = speed, static) for a Karnopp-type load law."""
     if law == LAW_COULOMB_VISCOUS:
@@ -211,6 +228,54 @@ def _spring(p: np.ndarray, nonlinear: int, deflection: float) -> float:
     return torque if deflection >= 0.0 else -torque
 
 
+@njit(cache=True, inline="always")
+def profile_value(q: np.ndarray, t: float) -> float:
+    """The input profile `q` at time `t` [s] (docs/INTERFACE.md's kinds; chirps as scipy.signal.chirp)."""
+    kind = int(q[Q_KIND])
+    offset = q[Q_OFFSET]
+    amp = q[Q_AMP]
+    if kind == PROFILE_SINE:
+        return offset + amp * math.sin(2.0 * math.pi * q[Q_A] * t + q[Q_B])
+    if kind == PROFILE_CONST:
+        return offset
+    if kind == PROFILE_STEP:
+        return offset + (amp if t >= q[Q_A] else 0.0)
+    if kind == PROFILE_RAMP:
+        return offset + amp * max(t - q[Q_A], 0.0)
+    if kind == PROFILE_CHIRP:
+        f0 = q[Q_A]
+        phase = 2.0 * math.pi * (f0 * t + 0.5 * ((q[Q_B] - f0) / q[Q_C]) * t * t)
+        return offset + amp * math.sin(phase)  # a sine start: continuous from rest
+    if kind == PROFILE_LOG_CHIRP:
+        f0 = q[Q_A]
+        f1 = q[Q_B]
+        if f0 == f1:
+            phase = 2.0 * math.pi * f0 * t
+        else:
+            beta = q[Q_C] / math.log(f1 / f0)
+            phase = 2.0 * math.pi * beta * f0 * ((f1 / f0) ** (t / q[Q_C]) - 1.0)
+        return offset + amp * math.sin(phase)
+    if kind == PROFILE_PULSE:
+        on = t >= q[Q_C] and (t - q[Q_C]) % q[Q_B] < q[Q_A]
+        return offset + (amp if on else 0.0)
+    if kind == PROFILE_STAIRCASE:
+        steps = int(q[Q_A])
+        index = min(max(t // q[Q_B], 0.0), steps - 1.0)
+        # np.linspace(-amp, amp, steps)[index], its last level exactly +amp
+        level = amp if index == steps - 1 else -amp + index * (2.0 * amp / (steps - 1))
+        return offset + level
+    raise ValueError("unknown input profile kind")
+
+
+@njit(cache=True)
+def profile_values(q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """`profile_value` at each of the times `t` [s]."""
+    out = np.empty(t.shape[0])
+    for i in range(t.shape[0]):
+        out[i] = profile_value(q, t[i])
+    return out
+
+
 @njit(cache=True)
 def integrate(
     p: np.ndarray,
@@ -229,8 +294,56 @@ def integrate(
     `tau_ext` has one value per step or a single value for all. Every `decim`-th step (from the first)
     writes one row of `out` with the state at the start of that step and the torques applied over it.
     """
-    n_steps = drive.shape[0]
+    return _advance(
+        p, flags, x, mode, drive, tau_ext, drive[:0], drive[:0], 0.0, drive.shape[0], dt, decim, out
+    )
+
+
+@njit(cache=True)
+def integrate_profiles(
+    p: np.ndarray,
+    flags: np.ndarray,
+    x: np.ndarray,
+    mode: int,
+    drive_q: np.ndarray,
+    load_q: np.ndarray,
+    first_step: float,
+    n_steps: int,
+    dt: float,
+    decim: int,
+    out: np.ndarray,
+) -> int:
+    """`integrate` with the drive and the load given as profiles (`profile_value` vectors), evaluated
+    at each step's time (first_step + i)·dt: no per-step input arrays, so a run of any length streams
+    through the loop at the loop's own pace."""
+    return _advance(
+        p, flags, x, mode, drive_q[:0], load_q[:0], drive_q, load_q, first_step, n_steps, dt, decim, out
+    )
+
+
+@njit(cache=True)
+def _advance(
+    p: np.ndarray,
+    flags: np.ndarray,
+    x: np.ndarray,
+    mode: int,
+    drive: np.ndarray,
+    tau_ext: np.ndarray,
+    drive_q: np.ndarray,
+    load_q: np.ndarray,
+    first_step: float,
+    n_steps: int,
+    dt: float,
+    decim: int,
+    out: np.ndarray,
+) -> int:
+    """The loop of `integrate` and `integrate_profiles`: inputs from arrays, or from profiles when
+    `drive_q` is not empty (then `drive` and `tau_ext` are)."""
+    profiles = drive_q.shape[0] > 0
     const_load = tau_ext.shape[0] == 1
+    # A constant load profile (the usual case) is read once, not evaluated at every step.
+    fixed_load = profiles and load_q[Q_KIND] == PROFILE_CONST
+    load_value = load_q[Q_OFFSET] if fixed_load else 0.0
     motor_law = flags[FL_MOTOR_LAW]
     load_law = flags[FL_LOAD_LAW]
     rigid = flags[FL_RIGID]
@@ -258,8 +371,13 @@ def integrate(
     travel = x[X_TRAVEL]
     rows = 0
     for i in range(n_steps):
-        load_torque = tau_ext[0] if const_load else tau_ext[i]
-        value = drive[i]
+        if profiles:
+            t_input = (first_step + i) * dt  # from the step index: no drift of a summed clock
+            value = profile_value(drive_q, t_input)
+            load_torque = load_value if fixed_load else profile_value(load_q, t_input)
+        else:
+            load_torque = tau_ext[0] if const_load else tau_ext[i]
+            value = drive[i]
         if mode == MODE_VOLTAGE:
             i_a = (value - p[K_B] * omega_m) / p[R_ARM]
             torque_m = p[K_M] * i_a
