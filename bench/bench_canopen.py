@@ -18,8 +18,11 @@ sweeps 0.64 rad at the output, inside its stroke). Prints a table with the targe
 - DAQ sustained rate: samples received / host time they span, against the configured rate; and
   the rows whose θ_l was extrapolated (a chunk's end that could not wait longer for the DAQ).
 
-The machine's load is printed with the figures: the 1-minute load average before and after, the
-share of all CPUs busy during the run (/proc/stat), and this process's CPU time over the wall time.
+By default the process asks for the FIFO real-time class on one CPU (`rig.realtime.realtime_scheduling`;
+its threads and the twins' child inherit both) and says what it got; `--scheduling ordinary` runs
+without, `--cpu -1` on any CPU. The machine's load is printed with the figures: the 1-minute load
+average before and after, the share of all CPUs busy during the run (/proc/stat), and this process's
+CPU time over the wall time.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import numpy as np
 from drivers.hardware_rig import CycleLog
 from rig.config import RIG_DIR, load_rig_config
 from rig.interface import ControlMode, Segment
-from rig.realtime import quiet_heap
+from rig.realtime import quiet_heap, realtime_scheduling
 from sim_backend.virtual_bus import VirtualCanRig
 
 RIG = RIG_DIR / "virtual-can.yaml"
@@ -98,7 +101,22 @@ def main() -> None:
         default="process",
         help="the twins in this process, or in a child on the loopback TCP bus (default: process)",
     )
+    parser.add_argument(
+        "--scheduling",
+        choices=("realtime", "ordinary"),
+        default="realtime",
+        help="run the loop (and the twins' child) in the FIFO real-time class where the OS allows (default)",
+    )
+    parser.add_argument(
+        "--cpu",
+        type=int,
+        default=(os.cpu_count() or 1) - 1,
+        help="with realtime scheduling, the one CPU of the loop and the twins (default: the last); -1: any",
+    )
     args = parser.parse_args()
+    scheduling = "ordinary scheduling"
+    if args.scheduling == "realtime":
+        scheduling = realtime_scheduling(cpu=None if args.cpu < 0 else args.cpu)
 
     config = load_rig_config(RIG)
     daq = dict(config.extra.get("daq") or {})
@@ -120,7 +138,8 @@ def main() -> None:
     )
     print(
         f"{platform.python_implementation()} {platform.python_version()}, {cpu_model()},"
-        f" {os.cpu_count()} CPUs; twins {'in this process' if in_process else 'in a child process'}\n"
+        f" {os.cpu_count()} CPUs; twins {'in this process' if in_process else 'in a child process'};"
+        f" {scheduling}\n"
     )
 
     load_before = os.getloadavg()[0]

@@ -100,8 +100,9 @@ DAQ_MERGE_PARTS: Final = 32
 ALIGN_MARGIN_S: Final = 300e-6
 """Paced, what a chunk's end keeps of the period, after the wait for the DAQ, to interpolate."""
 EXTRAPOLATE_MAX_PERIODS: Final = 2
-"""Paced, rows at most this many periods past the newest DAQ sample are extrapolated; further, the
-chunk's end waits for the DAQ."""
+"""Paced, rows at most this many periods past the newest DAQ sample are extrapolated, plus the time
+between the DAQ's frames (the newest sample can be that old on arrival); further, the chunk's end
+waits for the DAQ."""
 _COLUMN = {name: i for i, name in enumerate(SAMPLE_COLUMNS)}
 
 Load = Callable[[float], None]
@@ -619,7 +620,9 @@ class HardwareRig(Rig):
             self._take_daq(self.daq.read_until(t_last))
         t_device, theta_l, theta_m = self._merged_daq()
         t_host = self.daq.host_time_s(t_device)  # one clock model for old and new samples alike
-        if not len(t_host) or t_host[-1] < t_last - EXTRAPOLATE_MAX_PERIODS * self.period_s:
+        stream = self.constants.daq or DaqStreamSettings()
+        reach_s = EXTRAPOLATE_MAX_PERIODS * self.period_s + stream.samples_per_frame / stream.rate_hz
+        if not len(t_host) or t_host[-1] < t_last - reach_s:
             self._take_daq(self.daq.read_until(t_last))  # too far behind to extrapolate: wait (or fail)
             t_device, theta_l, theta_m = self._merged_daq()
             t_host = self.daq.host_time_s(t_device)

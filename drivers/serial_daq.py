@@ -123,23 +123,27 @@ class ClockModel:
 
     def __init__(self, keep: int = 32) -> None:
         self.estimates: deque[ClockEstimate] = deque(maxlen=keep)
+        self._drift: float | None = None  # fitted when an estimate comes, not at every read (1 kHz)
 
     def add(self, estimate: ClockEstimate) -> None:
         self.estimates.append(estimate)
+        self._drift = None
+        last = self.estimates[-1]
+        if last.device_s - self.estimates[0].device_s >= DRIFT_MIN_SPAN_S:
+            device = np.array([e.device_s for e in self.estimates])
+            offset = np.array([e.offset_s for e in self.estimates])
+            weight = 1.0 / np.maximum([e.uncertainty_s for e in self.estimates], 1e-6)
+            self._drift = float(np.polyfit(device - last.device_s, offset, 1, w=weight)[0])
 
     def offset_s(self, t_device_s: ArrayLike) -> np.ndarray:
         t = np.asarray(t_device_s, dtype=np.float64)
         if not self.estimates:
             raise ValueError("no clock estimate yet: call estimate_clock_offset() first")
         last = self.estimates[-1]
-        if last.device_s - self.estimates[0].device_s < DRIFT_MIN_SPAN_S:
+        if self._drift is None:
             return np.full_like(t, last.offset_s)
-        device = np.array([e.device_s for e in self.estimates])
-        offset = np.array([e.offset_s for e in self.estimates])
-        weight = 1.0 / np.maximum([e.uncertainty_s for e in self.estimates], 1e-6)
-        drift, _ = np.polyfit(device - last.device_s, offset, 1, w=weight)
         # Anchored at the latest estimate: the fit gives the slope, the newest comparison the level.
-        return last.offset_s + drift * (t - last.device_s)
+        return last.offset_s + self._drift * (t - last.device_s)
 
 
 @dataclass(frozen=True)

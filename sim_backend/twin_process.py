@@ -26,6 +26,7 @@ from drivers.canopen_config import CanopenSettings
 from drivers.tcp_can import CanHub
 from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
+from rig.realtime import quiet_heap
 from sim_backend.cia402_twin import Cia402Twin
 from sim_backend.daq_twin import DaqTwin
 
@@ -48,7 +49,14 @@ def serve_twins(
     twin = daq = None
     try:
         twin = Cia402Twin(hub.bus(), settings.node_id, model, config, settings.eds_path())
-        daq = DaqTwin.from_sensors(twin.measured, config.sensors, source_clock="host")
+        line = dict(config.extra.get("daq") or {})  # the rig file's `daq:` (the virtual-can rig checked it)
+        daq = DaqTwin.from_sensors(
+            twin.measured,
+            config.sensors,
+            transport=line.get("transport", "pty"),
+            drift_ppm=float(line.get("drift_ppm", 0.0)),
+            source_clock="host",
+        )
         announce(json.dumps({"can": hub.channel, "daq": daq.url, "node_id": settings.node_id}))
         stop.wait()
     finally:
@@ -85,7 +93,8 @@ def _child() -> None:
     def announce(line: str) -> None:
         print(line, flush=True)
 
-    serve_twins(config, model, int(spec.get("port", 0)), announce, stop)
+    with quiet_heap():  # this process is the twins' own: a full collection would hold their answers back
+        serve_twins(config, model, int(spec.get("port", 0)), announce, stop)
 
 
 if __name__ == "__main__":
