@@ -50,7 +50,7 @@ test: lint $(FLEET_STAMP)
 # Benchmarks print their figures beside the targets (docs/BENCHMARKS.md keeps the latest); the SINDy
 # baseline of the gap benchmark needs the `bench` extra.
 bench: install
-	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'
+	$(BIN)/python -m pip install --quiet -e '.[dev,bench,fleet]'
 	$(BIN)/python bench/bench_simulator.py
 	$(BIN)/python bench/bench_campaign.py
 	$(BIN)/python bench/bench_identify.py
@@ -60,6 +60,7 @@ bench: install
 	$(BIN)/python bench/bench_gaps.py
 	$(BIN)/python bench/bench_service.py
 	$(BIN)/python bench/bench_endurance.py
+	$(BIN)/python bench/bench_fleet.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache *.egg-info
