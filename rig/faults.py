@@ -12,3 +12,8 @@
 
 class DeviceFaultError(RuntimeError):
     """The bench failed while working: the message says which device and what it reported."""
+
+
+class StorageFaultError(DeviceFaultError):
+    """The run store could not write (disk full, file too large, read-only): the rows already on disk are
+    kept, the run ends `aborted: <what the disk said>`."""

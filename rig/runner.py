@@ -209,6 +209,12 @@ def _play(
             )
         rig.disable()
         writer.finish(RunStatus.COMPLETE)
+    if writer.final_status == RunStatus.ABORTED:  # the store could not keep it all (a full disk)
+        reason = writer.final_reason or "aborted"
+        return RunOutcome(
+            writer.run_id, experiment.name, RunStatus.ABORTED, reason, run_dir=writer.run_dir,
+            fault=reason.removeprefix("aborted: "),
+        )  # fmt: skip
     return _analyze(store, writer.run_id, experiment, params, ctx)
 
 

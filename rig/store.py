@@ -56,6 +56,7 @@ from rig import catalog as tables
 from rig.catalog import STORED_STATUSES as _STORED
 from rig.catalog import Catalog, StoreError, default_url
 from rig.datastore import RunData, default_data_url
+from rig.faults import StorageFaultError
 from rig.importmap import MAPPED_SUFFIXES, ColumnSource, read_mapped
 from rig.runfile import (
     READ_SUFFIXES,
@@ -888,6 +889,9 @@ class RunWriter:
         self._buffer_lock = threading.Lock()  # the buffer, between appender and writer thread
         self._write_lock = threading.Lock()  # one flush at a time, so parts are numbered in order
         self._stop = threading.Event()
+        self._failure: StorageFaultError | None = None  # a write the writer thread could not make
+        self.final_status: RunStatus | None = None  # how finish() recorded it (a full disk aborts it)
+        self.final_reason: str | None = None
         self._wake = threading.Event()  # the writer thread flushes now (a segment's end, the finish)
         self._flusher: threading.Thread | None = None
         if background:
@@ -903,7 +907,11 @@ class RunWriter:
         while not self._stop.is_set():
             self._wake.wait(self._interval_s())
             self._wake.clear()
-            self.flush()
+            try:
+                self.flush()
+            except StorageFaultError as exc:
+                self._failure = exc  # the control loop hears of it at its next append
+                return
 
     def flush_soon(self) -> None:
         """Put the rows appended so far on disk without waiting for the interval: at once without a
@@ -918,9 +926,13 @@ class RunWriter:
         return self.store.run_dir(self.run_id)
 
     def append(self, block: dict[str, Any]) -> None:
-        """Add rows: one equal-length array (or scalar) per run column, `t` continuing to increase."""
+        """Add rows: one equal-length array (or scalar) per run column, `t` continuing to increase.
+
+        Raises StorageFaultError once a write of the writer thread has failed (the disk is full...)."""
         if self.closed:
             raise RuntimeError(f"run {self.run_id} is finished; cannot append")
+        if self._failure is not None:
+            raise self._failure
         if set(block) != set(self.columns):
             raise ValueError(
                 f"run {self.run_id}: block has columns {sorted(block)}, the run has {self.columns}"
@@ -956,8 +968,14 @@ class RunWriter:
             if not pending:
                 return
             columns = {c: np.concatenate([b[c] for b in pending]) for c in self.columns}
-            with self.store.data.writing(self.run_id, f"part-{self._next_part:06d}.parquet") as local:
-                write_parquet(columns, {}, local)
+            name = f"part-{self._next_part:06d}.parquet"
+            try:
+                with self.store.data.writing(self.run_id, name) as local:
+                    write_parquet(columns, {}, local)
+            except OSError as exc:
+                raise StorageFaultError(
+                    f"run store: cannot write {name} of run {self.run_id}: {exc}"
+                ) from exc
             self._compactor.part_written(self._next_part)
             self._next_part += 1
             self.samples += len(columns["t"])
@@ -982,9 +1000,15 @@ class RunWriter:
             self._stop.set()
             self._wake.set()
             self._flusher.join()
-        self.flush()
-        self._compactor.join()
-        samples, path = self.store._seal(self.run_id)
+        try:
+            self.flush()
+            self._compactor.join()
+            samples, path = self.store._seal(self.run_id)
+        except (StorageFaultError, OSError) as exc:
+            # The disk refused: what reached it stays (the parts, unsealed), and the run says why.
+            status = RunStatus.ABORTED
+            reason = reason or f"aborted: {exc}"
+            samples, path = self.samples, f"runs/{self.run_id}"
         runs = tables.runs
         values: dict[str, Any] = {
             "status": RunStatus(status).value,
@@ -998,6 +1022,7 @@ class RunWriter:
         with self.store.catalog.write() as db:
             db.execute(runs.update().where(runs.c.id == self.run_id).values(**values))
         self.closed = True
+        self.final_status, self.final_reason = RunStatus(status), reason
 
     def update_meta(self, extra: dict[str, Any]) -> None:
         """Merge keys into the run's metadata (e.g. what is known only once the run has started)."""

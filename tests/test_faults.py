@@ -329,11 +329,6 @@ def _file_size_limited() -> None:
     resource.setrlimit(resource.RLIMIT_FSIZE, (FILE_SIZE_LIMIT_BYTES, FILE_SIZE_LIMIT_BYTES))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="open (issue 15): the store's OSError (EFBIG/ENOSPC) reaches the user as a traceback; status,"
-    " reason and the rows flushed before are right (docs/RELIABILITY.md)",
-)
 def test_a_full_disk_ends_the_run_aborted_in_one_line_with_the_rows_written_before(tmp_path: Path) -> None:
     home = tmp_path / "home"
     result = subprocess.run(
