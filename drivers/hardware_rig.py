@@ -97,7 +97,7 @@ CLOCK_EXCHANGES_AT_START: Final = 16
 CLOCK_EXCHANGES_WHILE_STREAMING: Final = 4
 DAQ_MERGE_PARTS: Final = 32
 """The samples taken are merged into one array each whenever this many pieces have gathered."""
-ALIGN_MARGIN_S: Final = 300e-6
+ALIGN_MARGIN_S: Final = 500e-6
 """Paced, what a chunk's end keeps of the period, after the wait for the DAQ, to interpolate."""
 EXTRAPOLATE_MAX_PERIODS: Final = 2
 """Paced, rows at most this many periods past the newest DAQ sample are extrapolated, plus the time

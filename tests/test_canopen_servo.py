@@ -428,14 +428,15 @@ def test_a_bad_canopen_field_is_named(request: pytest.FixtureRequest) -> None:
 # --- timing ---------------------------------------------------------------------------------------
 
 
-def test_paced_cycles_hold_the_1_khz_grid(make_bench: BenchFactory) -> None:
-    """Pacing sends each SYNC at its grid time, one period after the last. How many answers come within
-    the period is a figure of the machine, measured by bench/bench_canopen.py, not asserted here."""
+def test_paced_cycles_never_come_faster_than_the_period(make_bench: BenchFactory) -> None:
+    """Pacing holds SYNCs on a grid one period apart, restarted later (never earlier) after a late cycle:
+    1000 paced cycles span at least 998 periods. How many answers come within the period is a figure
+    of the machine, measured by bench/bench_canopen.py, not asserted here."""
     bench = make_bench(pace=True)
     bench.enabled_in(OperationMode.CYCLIC_SYNC_VELOCITY)
     feedback = [bench.servo.cycle(20.0 * math.sin(k / 100)) for k in range(1000)]
-    interval = np.diff([f.t_s for f in feedback])
-    # Most SYNCs follow the last by one period (unpaced they come every ~0.2 ms, the twin's answer). A
-    # SYNC off the grid needs its wake-up or the answer before it late by over half a period: with two
-    # CPU hogs beside the test on 2 cores a 1 ms sleep wakes late by 0.08 ms at the median.
-    assert np.median(interval) == pytest.approx(1e-3, rel=0.05)
+    span_s = feedback[-1].t_s - feedback[0].t_s
+    # The first SYNC can be up to a period past its grid time, plus what held this thread between
+    # reading the clock and stamping the SYNC (allowed: 50 ms). Unpaced, each cycle takes only the
+    # twin's answer (median ~0.2 ms here): without pacing this fails.
+    assert span_s >= 998e-3 - 0.05
