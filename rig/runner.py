@@ -225,7 +225,11 @@ def _analyze(
     store.set_analysis(run_id, AnalysisState.RUNNING)  # a process killed from here on leaves it `interrupted`
     try:
         run = _read_for_analysis(store, run_id, experiment, params)
-        results = experiment.analyze(run, params, ctx)
+        results = experiment.analyze_parts(
+            lambda labels: store.read(run_id, segments=labels), run, params, ctx
+        )
+        if results is None:
+            results = experiment.analyze(run, params, ctx)
         artifacts = _save_results(store, run_id, results)
         plot_dir = store.add_artifact(run_id, "plots")
         plot_dir.mkdir(parents=True, exist_ok=True)

@@ -18,10 +18,13 @@ import pytest
 
 from model.params import load_model
 from model.recursive import FrictionTracker
+from model.run import Run
 from rig.config import load_rig_config
 from rig.core import actions
+from rig.experiments.base import RigContext, context_from_run
+from rig.experiments.endurance import TRACK_POINTS_MAX, Endurance, EnduranceObserver, EnduranceParams
 from rig.interface import open_simulated_rig
-from rig.runner import run_experiment
+from rig.runner import make_params, run_experiment
 from rig.store import RunStore
 
 K_WEAR = 2e-5  # per rad: +10 % in 5,000 rad, a few simulated minutes of the duty cycle
@@ -85,6 +88,50 @@ def test_the_analysis_reads_only_the_checkpoints(endurance: tuple[RunStore, str]
     )
     run = store.read(run_id, segments=[s["label"] for s in entry["meta"]["segments"] if s["label"][0] == "c"])
     assert len(run) == checkpoint_rows < entry["samples"] / 2
+
+
+def test_the_analysis_holds_one_checkpoint_at_a_time_and_agrees_with_all_at_once(
+    endurance: tuple[RunStore, str],
+) -> None:
+    store, run_id = endurance
+    labels = [str(s["label"]) for s in store.get(run_id)["meta"]["segments"]]
+    experiment = Endurance()
+    first = store.read(run_id, segments=experiment.analyzed_segments(None, labels))  # type: ignore[arg-type]
+    params = make_params(experiment, dict(first.meta["params"]))
+    assert isinstance(params, EnduranceParams)
+    ctx = context_from_run(first)
+    reads: list[int] = []
+
+    def read(chosen: list[str]) -> Run:
+        part = store.read(run_id, segments=chosen)
+        reads.append(len(part))
+        return part
+
+    parts = experiment.analyze_parts(read, first, params, ctx)
+    # Checkpoint 0 came with `first`; each other one was read alone, none larger than checkpoint 0.
+    assert len(reads) == 3 and max(reads) == len(first)
+    together = experiment.analyze(
+        store.read(run_id, segments=[x for x in labels if x[0] == "c"]), params, ctx
+    )
+    assert parts.checkpoints == together.checkpoints
+    stored = store.checkpoints(run_id=run_id)  # what the runner's analysis put in the catalog
+    assert [p["coulomb_nm"] for p in stored] == [p["coulomb_nm"] for p in parts.checkpoints]
+
+
+def test_the_online_track_stays_bounded_on_a_run_of_hours() -> None:
+    # 10 h of 1 s blocks with a track point asked every second: the track keeps between half and all of
+    # TRACK_POINTS_MAX points, spread over the whole run (every other one dropped, the spacing doubled).
+    ctx = RigContext(load_rig_config("sim"), 0.01, 0.0302, 0.0)
+    observer = EnduranceObserver(EnduranceParams(track_every_s=1.0), ctx, [])
+    run_s, n = 10 * 3600, 100
+    for second in range(run_s):
+        t = second + np.arange(n) / n
+        observer.feed({"t": t, "omega_m": np.full(n, 20.0), "i_a": np.full(n, 3.0), "tau_ext": np.zeros(n)})
+    track = np.asarray(observer.summary()["track"]["t_s"])
+    assert TRACK_POINTS_MAX // 2 <= len(track) <= TRACK_POINTS_MAX
+    spacing = np.diff(track)
+    assert np.all(spacing > 0) and spacing.max() <= 2 * run_s / TRACK_POINTS_MAX
+    assert track[0] < 2.0 and track[-1] > run_s - spacing.max()
 
 
 def test_trend_of_the_unit_lists_the_checkpoints_with_the_online_track(

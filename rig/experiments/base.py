@@ -8,6 +8,7 @@ experiment runs on the simulator, the twins and the hardware, and can be re-anal
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
@@ -109,6 +110,10 @@ def segments_of(run: Run, prefix: str = "") -> list[dict[str, Any]]:
     return [seg for seg in run.meta.get("segments", []) if str(seg["label"]).startswith(prefix)]
 
 
+SegmentReader = Callable[[list[str]], Run]
+"""Reads the rows of the named segments of the run being analyzed, and its metadata, from the store."""
+
+
 class Experiment(ABC):
     """One of the article's experiments. Subclasses set `name`, `Params`, and implement the three steps."""
 
@@ -137,4 +142,10 @@ class Experiment(ABC):
     def analyzed_segments(self, params: Any, labels: list[str]) -> list[str] | None:
         """The segments `analyze` reads, of those recorded (None: the whole run). A run of hours names
         the few it needs, so the store never loads the rest."""
+        return None
+
+    def analyze_parts(self, read: SegmentReader, run: Run, params: Any, ctx: RigContext) -> Results | None:
+        """The analysis of a run too long to hold even its analyzed segments at once: `read(labels)`
+        returns only those segments' rows (with the run's metadata), so it can go a part at a time;
+        `run` is what `analyzed_segments` names. None (the default): `analyze(run)` is the analysis."""
         return None

@@ -37,6 +37,7 @@ from rig.experiments.base import (
     ProgramError,
     Results,
     RigContext,
+    SegmentReader,
     segments_of,
 )
 from rig.experiments.plots import new_figure, save_figure
@@ -44,6 +45,9 @@ from rig.interface import Block, ControlMode, Segment
 
 DUTY_SEGMENT_S = 60.0  # duty blocks are cut into segments of about a minute that share one set-point array
 CHECKPOINT_PREFIX = "c"
+TRACK_POINTS_MAX = 512
+"""Online track points kept in the metadata: past this, every other one goes and the spacing doubles, so
+a run of any length keeps a track of 256–512 points (rewritten into the metadata at each new one)."""
 
 
 class EnduranceParams(ExperimentParams):
@@ -67,7 +71,11 @@ class EnduranceParams(ExperimentParams):
     track_memory_s: float = Field(
         default=60.0, gt=0, description="how far back the online friction tracker looks [s]"
     )
-    track_every_s: float = Field(default=30.0, gt=0, description="run time between two kept track points [s]")
+    track_every_s: float = Field(
+        default=30.0,
+        gt=0,
+        description="run time between two kept track points [s] (doubled as the track grows long)",
+    )
 
     @field_validator("speeds_rad_s")
     @classmethod
@@ -200,6 +208,7 @@ class EnduranceObserver:
         self._next = 0
         self.checkpoints: dict[str, dict[str, float]] = {}
         self.track: dict[str, list[float]] = {"t_s": [], "level_nm": [], "travel_rad": []}
+        self._track_every_s = params.track_every_s
         self._next_track_s = params.track_every_s
 
     def feed(self, block: Block) -> bool:
@@ -224,8 +233,11 @@ class EnduranceObserver:
             self.track["t_s"].append(float(block["t"][-1]))
             self.track["level_nm"].append(float(level[-1]))
             self.track["travel_rad"].append(self.travel_rad)
+            if len(self.track["t_s"]) > TRACK_POINTS_MAX:
+                self.track = {key: values[::2] for key, values in self.track.items()}
+                self._track_every_s *= 2.0
             while self._next_track_s <= block["t"][-1]:
-                self._next_track_s += self.params.track_every_s
+                self._next_track_s += self._track_every_s
             news = True
         return news
 
@@ -236,6 +248,76 @@ class EnduranceObserver:
             "track_memory_s": self.params.track_memory_s,
             "travel_rad": self.travel_rad,
         }
+
+
+def _checkpoint(
+    run: Run, prefix: str, seen: dict[str, Any], params: EnduranceParams, ctx: RigContext
+) -> dict[str, float] | None:
+    """The catalog row of the checkpoint whose segments start with `prefix` (None: the run did not
+    finish it); `seen` is what the observer noted while recording."""
+    own = segments_of(run, prefix)
+    if len(own) < len(checkpoint_program(params, ctx, 0)):
+        return None  # a checkpoint the run did not finish (aborted)
+    friction = friction_estimate(run, ctx, prefix, params.settle_s)
+    stiffness = stiffness_estimate(run, ctx, prefix, params)
+    span = slice(int(own[0]["start"]), int(own[-1]["start"]) + int(own[-1]["cycles"]))
+    # At the checkpoint's middle: the gear drifts a little while it is measured.
+    t_mid = 0.5 * (run.t[span.start] + run.t[span.stop - 1])
+    travel_half = 0.5 * float(np.sum(np.abs(run["omega_m"][span]))) / ctx.rate_hz
+    name = prefix.rstrip("/")
+    where = seen.get(name, {})
+    return {
+        "index": int(name[len(CHECKPOINT_PREFIX) :]),
+        "t_s": float(t_mid),
+        "duty_cycles": float(where.get("duty_cycles", math.nan)),
+        "travel_rad": float(where.get("travel_rad", math.nan)) + travel_half,
+        "coulomb_nm": friction["coulomb_nm"].value,
+        "coulomb_sigma_nm": friction["coulomb_nm"].sigma,
+        "viscous_nm_s_rad": friction["viscous_nm_s_rad"].value,
+        "viscous_sigma_nm_s_rad": friction["viscous_nm_s_rad"].sigma,
+        "stiffness_nm_rad": stiffness.value,
+        "stiffness_sigma_nm_rad": stiffness.sigma,
+    }
+
+
+CHECKPOINT_COLUMNS = (
+    "index",
+    "t_s",
+    "duty_cycles",
+    "travel_rad",
+    "coulomb_nm",
+    "coulomb_sigma_nm",
+    "viscous_nm_s_rad",
+    "viscous_sigma_nm_s_rad",
+    "stiffness_nm_rad",
+    "stiffness_sigma_nm_rad",
+)
+
+
+def _results(
+    checkpoints: list[dict[str, float]], observed: dict[str, Any], params: EnduranceParams
+) -> Results:
+    """Metrics, the checkpoint table and the online track, from the checkpoints' catalog rows."""
+    table = {
+        key: np.asarray([entry[key] for entry in checkpoints], dtype=np.float64) for key in CHECKPOINT_COLUMNS
+    }
+    metrics: dict[str, float | int | str] = {"checkpoints": len(checkpoints)}
+    if checkpoints:
+        first_c, last_c = checkpoints[0], checkpoints[-1]
+        metrics["coulomb_first_nm"] = first_c["coulomb_nm"]
+        metrics["coulomb_last_nm"] = last_c["coulomb_nm"]
+        metrics["coulomb_change_pct"] = 100.0 * (last_c["coulomb_nm"] / first_c["coulomb_nm"] - 1.0)
+        metrics["stiffness_last_nm_rad"] = last_c["stiffness_nm_rad"]
+    notes = [
+        f"online tracker: RLS with forgetting, memory {params.track_memory_s:g} s: it lags a steady drift"
+        " by about that, and its level is the duty cycle's, not the checkpoints' speeds and positions"
+    ]
+    results = Results(metrics, {"checkpoints": table}, notes)
+    results.checkpoints = checkpoints
+    track = observed.get("track")
+    if track and track.get("t_s"):
+        results.tables["friction_track"] = {k: np.asarray(v, dtype=np.float64) for k, v in track.items()}
+    return results
 
 
 class Endurance(Experiment):
@@ -265,74 +347,29 @@ class Endurance(Experiment):
         return EnduranceObserver(params, ctx, program)
 
     def analyzed_segments(self, params: EnduranceParams, labels: list[str]) -> list[str]:
-        return [label for label in labels if label.startswith(CHECKPOINT_PREFIX)]
+        return [label for label in labels if label.startswith(_label(0, ""))]
+
+    def analyze_parts(
+        self, read: SegmentReader, run: Run, params: EnduranceParams, ctx: RigContext
+    ) -> Results:
+        """One checkpoint's rows at a time (~37,000 rows), so memory does not grow with the run's hours;
+        `run` holds checkpoint 0."""
+        seen = run.meta.get("observed", {}).get("checkpoints", {})
+        checkpoints = []
+        for index in range(checkpoints_due(params)):
+            part = run if index == 0 else read([seg.label for seg in checkpoint_program(params, ctx, index)])
+            entry = _checkpoint(part, _label(index, ""), seen, params, ctx)
+            if entry is not None:
+                checkpoints.append(entry)
+        return _results(checkpoints, run.meta.get("observed", {}), params)
 
     def analyze(self, run: Run, params: EnduranceParams, ctx: RigContext) -> Results:
-        observed = run.meta.get("observed", {})
-        seen = observed.get("checkpoints", {})
+        """All checkpoints from one run holding their rows (the whole run, or its checkpoints)."""
+        seen = run.meta.get("observed", {}).get("checkpoints", {})
         names = sorted({str(seg["label"]).split("/")[0] for seg in segments_of(run, CHECKPOINT_PREFIX)})
-        rows: dict[str, list[float]] = {
-            k: []
-            for k in (
-                "index",
-                "t_s",
-                "duty_cycles",
-                "travel_rad",
-                "coulomb_nm",
-                "coulomb_sigma_nm",
-                "viscous_nm_s_rad",
-                "viscous_sigma_nm_s_rad",
-                "stiffness_nm_rad",
-                "stiffness_sigma_nm_rad",
-            )
-        }
-        checkpoints = []
-        for name in names:
-            prefix = name + "/"
-            labels = [seg["label"] for seg in segments_of(run, prefix)]
-            if len(labels) < len(checkpoint_program(params, ctx, 0)):
-                continue  # a checkpoint the run did not finish (aborted)
-            friction = friction_estimate(run, ctx, prefix, params.settle_s)
-            stiffness = stiffness_estimate(run, ctx, prefix, params)
-            own = segments_of(run, prefix)
-            span = slice(int(own[0]["start"]), int(own[-1]["start"]) + int(own[-1]["cycles"]))
-            # At the checkpoint's middle: the gear drifts a little while it is measured.
-            t_mid = 0.5 * (run.t[span.start] + run.t[span.stop - 1])
-            travel_half = 0.5 * float(np.sum(np.abs(run["omega_m"][span]))) / ctx.rate_hz
-            where = seen.get(name, {})
-            entry = {
-                "index": int(name[len(CHECKPOINT_PREFIX) :]),
-                "t_s": float(t_mid),
-                "duty_cycles": float(where.get("duty_cycles", math.nan)),
-                "travel_rad": float(where.get("travel_rad", math.nan)) + travel_half,
-                "coulomb_nm": friction["coulomb_nm"].value,
-                "coulomb_sigma_nm": friction["coulomb_nm"].sigma,
-                "viscous_nm_s_rad": friction["viscous_nm_s_rad"].value,
-                "viscous_sigma_nm_s_rad": friction["viscous_nm_s_rad"].sigma,
-                "stiffness_nm_rad": stiffness.value,
-                "stiffness_sigma_nm_rad": stiffness.sigma,
-            }
-            checkpoints.append(entry)
-            for key, value in entry.items():
-                rows[key].append(float(value))
-        table = {k: np.asarray(v) for k, v in rows.items()}
-        metrics: dict[str, float | int | str] = {"checkpoints": len(checkpoints)}
-        if checkpoints:
-            first_c, last_c = checkpoints[0], checkpoints[-1]
-            metrics["coulomb_first_nm"] = first_c["coulomb_nm"]
-            metrics["coulomb_last_nm"] = last_c["coulomb_nm"]
-            metrics["coulomb_change_pct"] = 100.0 * (last_c["coulomb_nm"] / first_c["coulomb_nm"] - 1.0)
-            metrics["stiffness_last_nm_rad"] = last_c["stiffness_nm_rad"]
-        notes = [
-            f"online tracker: RLS with forgetting, memory {params.track_memory_s:g} s: it lags a steady drift"
-            " by about that, and its level is the duty cycle's, not the checkpoints' speeds and positions"
-        ]
-        results = Results(metrics, {"checkpoints": table}, notes)
-        results.checkpoints = checkpoints
-        track = observed.get("track")
-        if track and track.get("t_s"):
-            results.tables["friction_track"] = {k: np.asarray(v, dtype=np.float64) for k, v in track.items()}
-        return results
+        checkpoints = [_checkpoint(run, name + "/", seen, params, ctx) for name in names]
+        found = [entry for entry in checkpoints if entry is not None]
+        return _results(found, run.meta.get("observed", {}), params)
 
     def plot(
         self, run: Run, results: Results, params: EnduranceParams, ctx: RigContext, out_dir: Path
