@@ -58,7 +58,7 @@ def test_the_wear_given_to_the_plant_is_recovered_within_the_stated_uncertainty(
     points = store.checkpoints(run_id=run_id)
     assert [p["index"] for p in points] == [0, 1, 2, 3]
     seed = load_model("seed")
-    assert seed.load_friction is not None
+    assert seed.load_friction is not None and seed.load_friction.f_cl is not None
     load_part = seed.mechanics.r * seed.load_friction.f_cl
     first = points[0]
     assert first["travel_rad"] * K_WEAR < 0.02  # checkpoint 0 is (nearly) before any wear
