@@ -22,6 +22,9 @@ import httpx
 import pytest
 import yaml
 
+from rig.status import RunStatus
+from rig.store import RunStore
+
 API = "/api/v1"
 START_S = 60.0  # the service answers health within this on a loaded machine (imports, rig open)
 WAIT_S = 120.0
@@ -57,6 +60,7 @@ class Server:
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
         env = dict(os.environ, HDRIG_HOME=str(home))
+        self.log_path = log
         self.log = log.open("ab")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "rig", "serve", "--rig", str(rig), "--port", str(self.port)],
@@ -69,7 +73,8 @@ class Server:
 
     def _healthy(self) -> bool:
         if self.proc.poll() is not None:
-            raise AssertionError(f"the service exited with {self.proc.returncode}")
+            said = self.log_path.read_text(errors="replace")[-2000:]
+            raise AssertionError(f"the service exited with {self.proc.returncode}:\n{said}")
         try:
             return httpx.get(f"{self.base}{API}/health", timeout=2).status_code == 200
         except httpx.TransportError:
@@ -208,3 +213,23 @@ def test_a_service_killed_mid_run_leaves_it_interrupted_with_its_data_and_starts
         assert client.get(f"{API}/jobs").json() == []
         time.sleep(0.5)  # give a wrongly restarted run time to show itself in the catalog
         assert [r["id"] for r in client.get(f"{API}/runs").json()] == [run_id]
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_a_service_told_to_stop_mid_run_quick_stops_and_ends_the_run_aborted_with_its_data(
+    home: Path, realtime_rig: Path, servers: list[Server], tmp_path: Path, signum: signal.Signals
+) -> None:
+    key = operator_key(home)
+    server = Server(home, realtime_rig, tmp_path / "serve.log")
+    servers.append(server)
+    with httpx.Client(base_url=server.base, headers={"Authorization": f"Bearer {key}"}, timeout=30) as client:
+        run_id = client.post(f"{API}/runs", json={"experiment": "speed-sweep"}).json()["id"]
+        wait_until(
+            "1000 samples flushed", lambda: client.get(f"{API}/runs/{run_id}").json()["samples"] >= 1000
+        )
+    server.proc.send_signal(signum)
+    server.proc.wait(WAIT_S)  # a graceful shutdown: the worker quick-stops, then the run is sealed
+    (entry,) = RunStore(home).list_runs()
+    assert entry["id"] == run_id and entry["status"] == RunStatus.ABORTED, entry
+    assert entry["reason"].startswith("aborted: quick stop") and entry["samples"] >= 1000
+    assert len(RunStore(home).read(run_id)) == entry["samples"]
