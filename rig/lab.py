@@ -146,7 +146,9 @@ class LocalLab:
             runs.append(run)
             landed(run)
 
-        with RigWorker(config, self.store) as worker, quiet_heap():
+        # The full collection that quiet_heap makes holds the interpreter for up to ~0.5 s: make it before
+        # the rig is opened and its drive's heartbeat watchdog is armed.
+        with quiet_heap(), RigWorker(config, self.store) as worker:
             job = worker.submit(plan)
             follower = _Follower(worker, job, progress, land)
             try:
