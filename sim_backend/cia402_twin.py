@@ -166,6 +166,9 @@ class Cia402Twin:
         """Load torque on the output during the next cycles [N·m], as the rig's tau_ext."""
         self.t_s = 0.0
         self.last_sample: dict[str, float] = {}
+        self.on_sample: Callable[[dict[str, float]], None] | None = None
+        """Given `last_sample` after each SYNC's step, before its TPDOs go out (the twins' process hands
+        its plant log to the host with it: the host, answered, finds the sample already there)."""
         self.state = State.NOT_READY_TO_SWITCH_ON
         self._rated_current_default_a = rated_current_a
         self._lock = threading.RLock()
@@ -405,6 +408,8 @@ class Cia402Twin:
             self._sync_count += 1
             self._step(self._cycles_per_sync())
             self.measured.record(taken_s)
+            if self.on_sample is not None:
+                self.on_sample(self.last_sample)
             self._publish()
             if operational:
                 self._send_tpdos()
