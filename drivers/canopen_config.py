@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 from typing import Final, Literal
 
@@ -64,18 +65,27 @@ class ScalingSettings(_Section):
 
     torque_constant_nm_per_a: float = Field(gt=0, description="motor torque per ampere, for CST targets")
     position_units_per_rev: float | None = Field(
-        default=None, gt=0, description="position units per motor revolution; default: 0x608F:1 / 0x608F:2"
+        default=None,
+        gt=0,
+        description="position units per motor revolution; default: from the drive's factor group"
+        " (0x608F, 0x6091, 0x6092, 0x6093, 0x60A8), else 0x608F:1 / 0x608F:2",
     )
     velocity_units_per_rad_s: float | None = Field(
         default=None,
         gt=0,
-        description="velocity units per rad/s; default: from `velocity_unit`, else the drive's 0x60A9,"
-        " else position units per second",
+        description="velocity units per motor rad/s; default: from `velocity_unit`, else the drive's"
+        " 0x60A9/0x6094/0x6096, else position units per second",
     )
     velocity_unit: Literal["increments_per_s", "rpm"] | None = Field(
         default=None,
         description="the drive's velocity unit, where its EDS has no 0x60A9 to say: position units per"
         " second, or motor revolutions per minute",
+    )
+    acceleration_units_per_rad_s2: float | None = Field(
+        default=None,
+        gt=0,
+        description="acceleration units per motor rad/s²; default: the drive's 0x60AA/0x6097, else velocity"
+        " units per second",
     )
     rated_torque_nm: float | None = Field(
         default=None, gt=0, description="motor rated torque, the 1000 ‰ of torque objects; default: 0x6076"
@@ -163,6 +173,9 @@ class DriveLimits:
 
     current_a: float
     velocity_rad_s: float
+    travel_motor_rad: tuple[float, float] | None = None
+    """Software position limits (0x607D) [motor rad], where the rig gives them: written only then, as
+    a drive's position is where it was switched on unless it is homed."""
 
     @classmethod
     def from_rig_config(cls, config: RigConfig) -> DriveLimits:
@@ -178,6 +191,12 @@ class Scaling:
     rated_torque_nm: float
     rated_current_a: float | None
     torque_constant_nm_per_a: float
+    acceleration_units_per_rad_s2: float | None = None  # None: velocity units per second
+
+    def acceleration_raw(self, rad_s2: float) -> int:
+        """An acceleration (0x6083/0x6084/0x6085) in the drive's acceleration units."""
+        per_rad_s2 = self.acceleration_units_per_rad_s2
+        return round(rad_s2 * (per_rad_s2 if per_rad_s2 is not None else self.velocity_units_per_rad_s))
 
     def position_rad(self, raw: int) -> float:
         return raw / self.position_units_per_rad
@@ -213,7 +232,9 @@ ObjectReader = Callable[[int, int], int]
 
 
 def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: ObjectReader) -> Scaling:
-    """Fill the scaling the settings leave open from the drive's objects; name what is missing."""
+    """Scaling from the rig file's settings and the drive's objects (read with `read`, values not EDS
+    defaults, on a bus). A setting wins where the drive cannot say; where the drive's factor group says
+    too, both must agree (else one line naming the field, the objects and their values)."""
 
     def from_drive(field: str, index: int, sub: int, what: str) -> int:
         if not _has(od, index, sub):
@@ -227,12 +248,28 @@ def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: Objec
             )
         return value
 
-    per_rev = settings.position_units_per_rev
-    if per_rev is None:
+    group = FactorGroup.read(od, read)
+    per_rev = _agreed(
+        "position_units_per_rev", settings.position_units_per_rev, group.position_units_per_rev(), group
+    )
+    if per_rev is None:  # the drive's units are its encoder's increments, and it has no resolution
         per_rev = from_drive("position_units_per_rev", 0x608F, 1, "encoder increments") / from_drive(
             "position_units_per_rev", 0x608F, 2, "motor revolutions"
         )
     position_per_rad = per_rev / (2 * math.pi)
+    velocity_per_rad_s = _agreed(
+        "velocity_units_per_rad_s",
+        _velocity_setting(settings, position_per_rad),
+        group.velocity_units_per_rad_s(position_per_rad),
+        group,
+    )
+    velocity_per_rad_s = velocity_per_rad_s if velocity_per_rad_s is not None else position_per_rad
+    acceleration_per_rad_s2 = _agreed(
+        "acceleration_units_per_rad_s2",
+        settings.acceleration_units_per_rad_s2,
+        group.acceleration_units_per_rad_s2(velocity_per_rad_s),
+        group,
+    )
     rated_torque = settings.rated_torque_nm
     if rated_torque is None:
         rated_torque = from_drive("rated_torque_nm", 0x6076, 0, "motor rated torque, mN·m") / 1000.0
@@ -241,50 +278,294 @@ def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: Objec
         rated_current = from_drive("rated_current_a", 0x6075, 0, "motor rated current, mA") / 1000.0
     return Scaling(
         position_units_per_rad=position_per_rad,
-        velocity_units_per_rad_s=_velocity_units_per_rad_s(settings, od, read, position_per_rad),
+        velocity_units_per_rad_s=velocity_per_rad_s,
         rated_torque_nm=rated_torque,
         rated_current_a=rated_current,
         torque_constant_nm_per_a=settings.torque_constant_nm_per_a,
+        acceleration_units_per_rad_s2=acceleration_per_rad_s2,
     )
+
+
+UNITS_REL_TOL: Final = 1e-6
+"""Two statements of a unit agree within this: a drive's integer ratios agree exactly; a rig file's
+value written to 7 significant digits (83443.0 for 524288 / 2π) is within it."""
+
+
+def _agreed(field: str, setting: float | None, drive: float | None, group: FactorGroup) -> float | None:
+    """The setting (it wins), checked against what the drive's objects say where they say it."""
+    if setting is None or drive is None:
+        return setting if setting is not None else drive
+    if not math.isclose(setting, drive, rel_tol=UNITS_REL_TOL):
+        raise CanopenConfigError(
+            f"canopen.scaling.{field} = {setting:.7g} contradicts the drive: {group.said()} give {drive:.7g}"
+        )
+    return setting
 
 
 VELOCITY_UNITS_PER_RAD_S: Final[dict[str, float | None]] = {
     "increments_per_s": None,  # the position units' own, per second
     "rpm": 60.0 / (2 * math.pi),
 }
-SI_NUMERATOR_UNITS: Final = {0xB4: "rpm", 0xB5: "increments_per_s"}
-"""0x60A9 (SI unit velocity, CiA 402): byte 2 the numerator's unit (0xB4 revolution, 0xB5 increment);
-byte 1 the denominator's (0x47 minute, 0x03 second), byte 3 a power of ten. Units the driver reads."""
-SI_UNIT_VELOCITY: Final = {0x00B44700: "rpm", 0x00B50300: "increments_per_s"}
 
 
-def _velocity_units_per_rad_s(
-    settings: ScalingSettings, od: ObjectDictionary, read: ObjectReader, position_per_rad: float
-) -> float:
-    """The setting; else the unit the setting names; else 0x60A9; else position units per second.
-
-    A velocity factor (0x6096) other than 1/1 changes the unit in a way only the settings can say.
-    """
+def _velocity_setting(settings: ScalingSettings, position_per_rad: float) -> float | None:
+    """What the settings say of velocity units: the number, else the unit named, else nothing."""
     if settings.velocity_units_per_rad_s is not None:
         return settings.velocity_units_per_rad_s
-    unit: str | None = settings.velocity_unit
-    if unit is None and _has(od, 0x60A9):
-        code = read(0x60A9, 0)
-        unit = SI_UNIT_VELOCITY.get(code)
-        if unit is None:
-            raise CanopenConfigError(
-                f"canopen.scaling.velocity_units_per_rad_s is needed: the drive's velocity unit"
-                f" 0x60A9 = 0x{code:08X} is not rpm (0x00B44700) or increments/s (0x00B50300)"
-            )
-    if unit is None and _has(od, 0x6096, 2):
-        numerator, divisor = read(0x6096, 1), read(0x6096, 2)
-        if numerator != divisor:
-            raise CanopenConfigError(
-                f"canopen.scaling.velocity_units_per_rad_s is needed: the drive's velocity factor"
-                f" 0x6096 is {numerator}/{divisor}"
-            )
-    per_rad_s = VELOCITY_UNITS_PER_RAD_S[unit or "increments_per_s"]
+    if settings.velocity_unit is None:
+        return None
+    per_rad_s = VELOCITY_UNITS_PER_RAD_S[settings.velocity_unit]
     return per_rad_s if per_rad_s is not None else position_per_rad
+
+
+# --- the drive's units: the CiA 402 factor group -------------------------------------------------
+
+SI_ANGLES_PER_TURN: Final = {
+    0xB4: ("revolution", 1.0),
+    0x41: ("degree", 360.0),
+    0x10: ("radian", 2 * math.pi),
+    0x40: ("gon", 400.0),
+    0x42: ("arcminute", 21_600.0),
+    0x43: ("arcsecond", 1_296_000.0),
+}
+"""CiA 303-2 unit codes of angles, and how many make one turn."""
+SI_INCREMENT: Final = 0xB5
+SI_SECONDS: Final = {0x03: ("s", 1.0), 0x47: ("min", 60.0), 0x48: ("h", 3600.0)}
+SI_SECONDS_SQUARED: Final = 0x57
+FACTOR_OBJECTS: Final = {
+    0x608F: "position encoder resolution",
+    0x6091: "gear ratio",
+    0x6092: "feed constant",
+    0x6093: "position factor",
+    0x6094: "velocity encoder factor",
+    0x6096: "velocity factor",
+    0x6097: "acceleration factor",
+    0x60A8: "SI unit position",
+    0x60A9: "SI unit velocity",
+    0x60AA: "SI unit acceleration",
+}
+"""The objects that set a drive's units: a write to any of them changes what its numbers mean."""
+
+
+@dataclass(frozen=True)
+class SiUnit:
+    """A CiA 402 SI unit object (0x60A8-0x60AA): byte 3 a power of ten (signed), byte 2 the numerator's
+    unit, byte 1 the denominator's (CiA 303-2 codes; 0 for none)."""
+
+    index: int
+    code: int
+
+    @property
+    def exponent(self) -> int:
+        prefix = self.code >> 24 & 0xFF
+        return prefix - 256 if prefix >= 128 else prefix
+
+    @property
+    def numerator(self) -> int:
+        return self.code >> 16 & 0xFF
+
+    @property
+    def denominator(self) -> int:
+        return self.code >> 8 & 0xFF
+
+    def angle_per_turn(self) -> float | None:
+        """Units per turn of the driving shaft where the numerator is an angle (10^exponent each)."""
+        if self.numerator not in SI_ANGLES_PER_TURN:
+            return None
+        return SI_ANGLES_PER_TURN[self.numerator][1] * 10.0**-self.exponent
+
+    def __str__(self) -> str:
+        return f"0x{self.index:04X} ({FACTOR_OBJECTS[self.index]}) = 0x{self.code:08X}"
+
+
+@dataclass(frozen=True)
+class FactorGroup:
+    """What a drive's factor group holds (each None where its dictionary lacks the object), and the units
+    it defines, as CiA 402 (IEC 61800-7-201) has them:
+
+    - position: increments = position units × position factor, the position factor being 0x6093, or
+      encoder resolution 0x608F (increments : motor turns) × gear ratio 0x6091 (motor turns : driving
+      shaft turns) / feed constant 0x6092 (position units : driving shaft turns). So a turn of the motor
+      is feed / gear position units. Where 0x60A8 names an angle, the feed follows from it (0.1° is
+      3600 per turn); a feed constant left at 1/1 is then not applied, as drives that take the unit from
+      0x60A8 do (Nanotec C5-E: feed constant for lengths only). 0x60A8 = increments: the encoder's own.
+    - velocity: where 0x60A9 names an angle or increments per time, that unit (angles at the driving
+      shaft, after the gear); else 0x6094 (DSP 402 2.0: increments/s per velocity unit); else position
+      units per second × velocity factor 0x6096.
+    - acceleration: 0x60AA (angle or increments per s²); else velocity units per second × 0x6097.
+
+    Objects that state one unit twice must agree, else one line naming them and their values.
+    """
+
+    resolution: Fraction | None = None  # 0x608F; None also where it holds no positive value
+    gear: Fraction | None = None  # 0x6091
+    feed: Fraction | None = None  # 0x6092
+    position_factor: Fraction | None = None  # 0x6093
+    velocity_encoder_factor: Fraction | None = None  # 0x6094
+    velocity_factor: Fraction | None = None  # 0x6096
+    acceleration_factor: Fraction | None = None  # 0x6097
+    si_position: SiUnit | None = None
+    si_velocity: SiUnit | None = None
+    si_acceleration: SiUnit | None = None
+
+    @classmethod
+    def read(cls, od: ObjectDictionary, read: ObjectReader) -> FactorGroup:
+        """The objects the dictionary has, their values read with `read` (from the drive on a bus)."""
+
+        def ratio(index: int) -> Fraction | None:
+            if not (_has(od, index, 1) and _has(od, index, 2)):
+                return None
+            numerator, divisor = read(index, 1), read(index, 2)
+            if numerator <= 0 or divisor <= 0:
+                if index == 0x608F:
+                    return None  # no resolution set: a setting must give it (resolve_scaling says so)
+                name = FACTOR_OBJECTS[index]
+                raise CanopenConfigError(
+                    f"the drive's 0x{index:04X} ({name}) = {numerator}/{divisor} is not a ratio"
+                )
+            return Fraction(numerator, divisor)
+
+        def si(index: int) -> SiUnit | None:
+            return SiUnit(index, read(index, 0) & 0xFFFFFFFF) if _has(od, index) else None
+
+        return cls(
+            resolution=ratio(0x608F),
+            gear=ratio(0x6091),
+            feed=ratio(0x6092),
+            position_factor=ratio(0x6093),
+            velocity_encoder_factor=ratio(0x6094),
+            velocity_factor=ratio(0x6096),
+            acceleration_factor=ratio(0x6097),
+            si_position=si(0x60A8),
+            si_velocity=si(0x60A9),
+            si_acceleration=si(0x60AA),
+        )
+
+    def said(self) -> str:
+        """The objects read and their values, for messages."""
+        ratios = {
+            0x608F: self.resolution,
+            0x6091: self.gear,
+            0x6092: self.feed,
+            0x6093: self.position_factor,
+            0x6094: self.velocity_encoder_factor,
+            0x6096: self.velocity_factor,
+            0x6097: self.acceleration_factor,
+        }
+        parts = [f"0x{i:04X} = {_ratio_text(r)}" for i, r in ratios.items() if r is not None]
+        parts += [str(u) for u in (self.si_position, self.si_velocity, self.si_acceleration) if u is not None]
+        return ", ".join(parts) if parts else "no factor group"
+
+    def _contradiction(self, what: str) -> CanopenConfigError:
+        return CanopenConfigError(f"the drive's units contradict each other: {what}")
+
+    def _feed(self) -> Fraction | float | None:
+        """Position units per driving shaft turn: 0x6092, or as 0x60A8's angle says."""
+        angle = self.si_position.angle_per_turn() if self.si_position is not None else None
+        if angle is None:
+            return self.feed
+        if self.feed is not None and self.feed != 1 and not _close(self.feed, angle):
+            raise self._contradiction(
+                f"{self.si_position} is {angle:g} per shaft turn but 0x6092 (feed constant)"
+                f" = {_ratio_text(self.feed)}"
+            )
+        return angle
+
+    def position_units_per_rev(self) -> float | None:
+        """Position units per motor turn; None where the drive cannot say (no resolution, no feed)."""
+        gear = self.gear if self.gear is not None else Fraction(1)
+        increments = self.si_position is not None and self.si_position.numerator == SI_INCREMENT
+        if increments:
+            if self.position_factor is not None and self.position_factor != 1:
+                raise self._contradiction(
+                    f"{self.si_position} (increments) but 0x6093 (position factor) ="
+                    f" {_ratio_text(self.position_factor)}"
+                )
+            return _float(self.resolution)
+        feed = self._feed()
+        if feed is not None:
+            per_rev = float(feed / gear)
+            if self.position_factor is not None and self.resolution is not None:
+                implied = float(self.resolution * gear / feed)  # increments per position unit
+                if not _close(self.position_factor, implied):
+                    raise self._contradiction(
+                        f"0x6093 (position factor) = {_ratio_text(self.position_factor)} but 0x608F ×"
+                        f" 0x6091 / feed = {_ratio_text(self.resolution)} × {_ratio_text(gear)}"
+                        f" / {_ratio_text(feed)} = {implied:.7g}"
+                    )
+            return per_rev
+        if self.position_factor is not None:
+            return _float(self.resolution / self.position_factor if self.resolution is not None else None)
+        return _float(self.resolution)
+
+    def velocity_units_per_rad_s(self, position_per_rad: float) -> float | None:
+        """Velocity units per motor rad/s; None where the drive has no velocity unit objects (then they
+        are position units per second). `position_per_rad`: position units per motor radian."""
+        implied = self._si_rate(self.si_velocity, SI_SECONDS)
+        if implied is None and self.velocity_encoder_factor is not None:
+            if self.resolution is None:
+                return None  # increments per turn unknown: 0x6094 cannot be turned into radians
+            return float(self.resolution) / (2 * math.pi) / float(self.velocity_encoder_factor)
+        if implied is None:
+            return (
+                position_per_rad * float(self.velocity_factor) if self.velocity_factor is not None else None
+            )
+        factor = self.velocity_factor
+        if factor is not None and factor != 1 and not _close(factor, implied / position_per_rad):
+            raise self._contradiction(
+                f"{self.si_velocity} is {implied:.7g} per motor rad/s but position units per second ×"
+                f" 0x6096 (velocity factor) = {position_per_rad:.7g} × {_ratio_text(factor)}"
+            )
+        encoder = self.velocity_encoder_factor
+        if encoder is not None and self.resolution is not None:
+            per_rad_s = float(self.resolution) / (2 * math.pi)
+            if not _close(encoder, per_rad_s / implied):
+                raise self._contradiction(
+                    f"{self.si_velocity} is {implied:.7g} per motor rad/s but 0x6094 (velocity encoder"
+                    f" factor) = {_ratio_text(encoder)} increments/s per unit"
+                )
+        return implied
+
+    def acceleration_units_per_rad_s2(self, velocity_per_rad_s: float) -> float | None:
+        """Acceleration units per motor rad/s²; None where the drive has no acceleration unit objects
+        (then they are velocity units per second)."""
+        implied = self._si_rate(self.si_acceleration, {SI_SECONDS_SQUARED: ("s²", 1.0)})
+        factor = self.acceleration_factor
+        if implied is None:
+            return velocity_per_rad_s * float(factor) if factor is not None else None
+        if factor is not None and factor != 1 and not _close(factor, implied / velocity_per_rad_s):
+            raise self._contradiction(
+                f"{self.si_acceleration} is {implied:.7g} per motor rad/s² but velocity units per second ×"
+                f" 0x6097 (acceleration factor) = {velocity_per_rad_s:.7g} × {_ratio_text(factor)}"
+            )
+        return implied
+
+    def _si_rate(self, unit: SiUnit | None, times: dict[int, tuple[str, float]]) -> float | None:
+        """Units per motor rad/s (or rad/s²) of an angle or increments per time unit; None for others."""
+        if unit is None or unit.denominator not in times:
+            return None
+        per_time = times[unit.denominator][1]  # seconds in the time unit (its square for accelerations)
+        angle = unit.angle_per_turn()
+        if angle is not None:  # at the driving shaft: a motor turn is 1/gear of one
+            gear = float(self.gear) if self.gear is not None else 1.0
+            return angle * per_time / gear / (2 * math.pi)
+        if unit.numerator == SI_INCREMENT and self.resolution is not None:
+            return float(self.resolution) * 10.0**-unit.exponent * per_time / (2 * math.pi)
+        return None
+
+
+def _close(a: Fraction | float, b: Fraction | float) -> bool:
+    return math.isclose(float(a), float(b), rel_tol=UNITS_REL_TOL)
+
+
+def _float(value: Fraction | None) -> float | None:
+    return float(value) if value is not None else None
+
+
+def _ratio_text(value: Fraction | float) -> str:
+    if isinstance(value, Fraction):
+        return f"{value.numerator}/{value.denominator}"
+    return f"{value:.7g}"
 
 
 Watchdog = Literal["heartbeat consumer", "node guarding", "none"]
@@ -454,8 +735,9 @@ def _limit_writes(od: ObjectDictionary, limits: DriveLimits, scaling: Scaling) -
         var = od_variable(od, write.index, write.subindex)
         low, high = declared_range(var)
         if not low <= write.value <= high:
+            where = f"0x{write.index:04X}" + (f":{write.subindex:02X}" if write.subindex else "")
             raise CanopenConfigError(
-                f"0x{write.index:04X} ({var.name}) = {write.value} is outside its declared range"
+                f"{where} ({var.name}) = {write.value} is outside its declared range"
                 f" [{low}, {high}]: {write.why}; lower `control:` or check `canopen.scaling`"
             )
     return writes
@@ -484,6 +766,11 @@ def _unchecked_limit_writes(od: ObjectDictionary, limits: DriveLimits, scaling: 
     if _has(od, 0x607F):
         velocity = scaling.velocity_raw(limits.velocity_rad_s)
         writes.append(SdoWrite(0x607F, 0, velocity, f"max profile velocity, {limits.velocity_rad_s:g} rad/s"))
+    if limits.travel_motor_rad is not None and _has(od, 0x607D, 2):
+        low_rad, high_rad = limits.travel_motor_rad
+        for sub, rad, which in ((1, low_rad, "min"), (2, high_rad, "max")):
+            raw = scaling.position_raw(rad)
+            writes.append(SdoWrite(0x607D, sub, raw, f"{which} position limit = {rad:g} rad at the motor"))
     if _has(od, 0x6080):
         rpm = round(limits.velocity_rad_s * 60 / (2 * math.pi))
         writes.append(SdoWrite(0x6080, 0, rpm, f"max motor speed, rpm = {limits.velocity_rad_s:g} rad/s"))

@@ -39,12 +39,14 @@ from canopen.sdo import SdoAbortedError
 from drivers.can_bus import RecordedNetwork
 from drivers.canopen_config import (
     EDS_DIR,
+    FACTOR_OBJECTS,
     PDO_INVALID,
     RPDO_COMM,
     RPDO_MAP,
-    SI_UNIT_VELOCITY,
     TPDO_COMM,
     TPDO_MAP,
+    CanopenConfigError,
+    FactorGroup,
     is_mapping_object,
 )
 from drivers.cia402 import (
@@ -190,6 +192,7 @@ class Cia402Twin:
         self._guard_toggle = 0
         self._supported_bits = 0
         self._torque_reference_permille = 0.0  # profile torque: the ramped target
+        self._units: tuple[float, float, float] | None = None  # per motor rad, rad/s, rad/s²
 
         self.network = RecordedNetwork(bus)  # its periodic heartbeat thread ends when stopped
         self._watch = _HeartbeatWatch(node_id, self._answer_guard)
@@ -250,6 +253,10 @@ class Cia402Twin:
     def _reset_application(self) -> None:
         """Power-on values of the drive's own objects; the 402 state machine to SWITCH ON DISABLED."""
         self.node.data_store.clear()
+        self._units = None
+        if self._get_or(0x608F, 0, 1) <= 0 or self._get_or(0x608F, 0, 2) <= 0:  # no resolution in the EDS
+            self._store(0x608F, 1, self._encoder_counts_per_rev())
+            self._store(0x608F, 2, 1)
         rated_ma = self._get_or(0x6075, 0)
         if rated_ma <= 0:
             rated_ma = round(self._rated_current_default_a * 1000)
@@ -318,6 +325,8 @@ class Cia402Twin:
             if is_mapping_object(index) and subindex > 0:
                 self._check_mappable(int(od.decode_raw(data)))
             self._pdos_stale = True
+        elif index in FACTOR_OBJECTS:
+            self._units = None  # a unit changes: re-read the factor group at its next use
         elif index == 0x6040:
             with self._lock:
                 self._apply_controlword(int(od.decode_raw(data)))
@@ -481,7 +490,7 @@ class Cia402Twin:
             return ControlMode.VELOCITY, np.full(n, self._velocity_target_rad_s(velocity_units))
         if mode == OperationMode.PROFILE_VELOCITY:
             target = self._velocity_target_rad_s(velocity_units)
-            return ControlMode.VELOCITY, self._profile(n, target, velocity_units)
+            return ControlMode.VELOCITY, self._profile(n, target)
         return ControlMode.CURRENT, np.zeros(n)  # no mode, or one the drive lacks: no torque
 
     def _offset_track(self, positions_rad: np.ndarray) -> FeedForwardTrack | None:
@@ -508,10 +517,10 @@ class Cia402Twin:
         limit = min(limit, self._get_or(0x6080, _INT32) * 2 * math.pi / 60)  # max motor speed, rpm
         return min(max(target, -limit), limit)
 
-    def _profile(self, n: int, target: float, units: float) -> np.ndarray:
+    def _profile(self, n: int, target: float) -> np.ndarray:
         """Profile velocity: the reference ramps to the target at 0x6083 (speeding up), 0x6084 (slowing)."""
-        accel = self._get_or(0x6083, 0) / units
-        decel = self._get_or(0x6084, 0) / units
+        accel = self._get_or(0x6083, 0) / self._drive_units()[2]
+        decel = self._get_or(0x6084, 0) / self._drive_units()[2]
         out = np.empty(n)
         reference = self._pv_reference_rad_s
         for k in range(n):
@@ -602,17 +611,34 @@ class Cia402Twin:
         self._store(0x6078, 0, _saturate(round(current / self.rated_current_a * 1000), _INT16))
 
     def _position_units_per_rad(self) -> float:
-        """Increments per radian: 0x608F where it holds values, else the rig's encoder (17 bit if ideal)."""
-        increments, revs = self._get_or(0x608F, 0, 1), self._get_or(0x608F, 0, 2)
-        if increments > 0 and revs > 0:
-            return increments / revs / (2 * math.pi)
-        counts = self.config.sensors.encoder_counts_per_rev or 1 << 17
-        return counts / (2 * math.pi)
+        return self._drive_units()[0]
 
     def _velocity_units_per_rad_s(self) -> float:
-        """Velocity units per rad/s: rpm or increments/s as 0x60A9 says, else position units per second."""
-        unit = SI_UNIT_VELOCITY.get(self._get_or(0x60A9, 0))
-        return 60 / (2 * math.pi) if unit == "rpm" else self._position_units_per_rad()
+        return self._drive_units()[1]
+
+    def _drive_units(self) -> tuple[float, float, float]:
+        """Position, velocity and acceleration units per motor rad, rad/s, rad/s², as the factor group
+        of the twin's dictionary defines them (`FactorGroup`: the driver's own reading of CiA 402), with
+        the values a master wrote; increments of its encoder (0x608F) where the group says nothing."""
+        if self._units is None:
+            group = FactorGroup.read(self.node.object_dictionary, lambda i, s: self._get_or(i, 0, s))
+            resolution = self._get_or(0x608F, 0, 1) / max(1, self._get_or(0x608F, 1, 2))
+            increments = (resolution if resolution > 0 else self._encoder_counts_per_rev()) / (2 * math.pi)
+            try:
+                per_rev = group.position_units_per_rev()
+                position = per_rev / (2 * math.pi) if per_rev is not None else increments
+                velocity = group.velocity_units_per_rad_s(position)
+                velocity = velocity if velocity is not None else position
+                acceleration = group.acceleration_units_per_rad_s2(velocity)
+                acceleration = acceleration if acceleration is not None else velocity
+            except CanopenConfigError as exc:  # as a drive whose firmware ignores what it cannot use
+                logger.warning("twin %d: %s: in encoder increments instead", self.node.id, exc)
+                position = velocity = acceleration = increments
+            self._units = (position, velocity, acceleration)
+        return self._units
+
+    def _encoder_counts_per_rev(self) -> int:
+        return self.config.sensors.encoder_counts_per_rev or 1 << 17  # ideal sensors: a 17-bit encoder
 
     # --- heartbeat consumer and life guarding -----------------------------------------------------
 

@@ -263,12 +263,13 @@ def test_the_twin_stops_when_node_guarding_ends(
         (RPM_SMALL, {}, CSV),
         (POSITION_ONLY, {}, IP),
         (Path("ZeroErrDriver.eds"), VENDOR_SCALING, CSV),
-        (Path("nanotec_C5-E-2-09.eds"), VENDOR_SCALING, CSV),
+        # Nanotec's 0x60A8 says its positions are 0.1° (3600 a turn): the drive's units, not the rig's.
+        (Path("nanotec_C5-E-2-09.eds"), {**VENDOR_SCALING, "position_units_per_rev": None}, CSV),
     ],
     ids=["profile-modes-guarding", "rpm-small-ranges", "position-only", "zeroerr", "nanotec"],
 )
 def test_the_speed_sweep_runs_on_a_twin_built_from_each_file(
-    eds: Path, scaling: dict[str, float], mode: OperationMode, tmp_path: Path
+    eds: Path, scaling: dict[str, float | None], mode: OperationMode, tmp_path: Path
 ) -> None:
     path = eds if eds.is_absolute() else vendor(eds.name)
     config = virtual_can(path, scaling={"torque_constant_nm_per_a": 0.0302, **scaling})

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,7 @@ import pytest
 
 from drivers.can_bus import open_bus
 from drivers.canopen_config import (
+    FACTOR_OBJECTS,
     CanopenConfigError,
     CanopenSettings,
     DriveLimits,
@@ -30,6 +31,7 @@ from drivers.canopen_config import (
 )
 from drivers.canopen_servo import CanopenServo
 from drivers.cia402 import SUPPORTED_MODE_BIT, TARGET_OBJECT, OperationMode, State
+from drivers.pdo_layout import od_variable
 from hdrig_testing.can_bus import TWIN_SYNC_TIMEOUT_S, bus_settings_for_test
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, load_rig_config
@@ -45,6 +47,9 @@ VENDOR_SCALING = {
     "position_units_per_rev": 131072,
     "rated_torque_nm": 0.151,
     "rated_current_a": 5.0,
+}
+UNITS_THE_DRIVE_SAYS: dict[str, dict[str, Any]] = {
+    "nanotec_C5-E-2-09.eds": {"position_units_per_rev": None},  # 0x60A8: 0.1° (3600 a turn), not the rig's
 }
 LIMITS = DriveLimits(current_a=10.0, velocity_rad_s=600.0)
 CST, CSV = OperationMode.CYCLIC_SYNC_TORQUE, OperationMode.CYCLIC_SYNC_VELOCITY
@@ -117,21 +122,30 @@ def vendor_settings(eds: Path, **scaling: Any) -> CanopenSettings:
             "node_id": NODE,
             "interface": "virtual",
             "sync_timeout_s": TWIN_SYNC_TIMEOUT_S,
-            "scaling": {**VENDOR_SCALING, **scaling},
+            "scaling": {**VENDOR_SCALING, **UNITS_THE_DRIVE_SAYS.get(eds.name, {}), **scaling},
         }
     )
 
 
-def no_drive(index: int, subindex: int) -> int:
-    if (index, subindex) == (0x60A9, 0):
-        return 0x00B44700  # Nanotec's velocity unit, rpm (its EDS default): read from the drive
-    raise AssertionError(f"0x{index:04X}:{subindex:02X} was read from the drive: the settings give it")
+def no_drive(od: canopen.ObjectDictionary) -> Callable[[int, int], int]:
+    """A drive fresh from the factory, offline: its units objects (the factor group, read to check the
+    settings against) answer their EDS defaults, 0 where the EDS gives none; nothing else is read."""
+
+    def read(index: int, subindex: int) -> int:
+        if index not in FACTOR_OBJECTS:
+            raise AssertionError(
+                f"0x{index:04X}:{subindex:02X} was read from the drive: the settings give it"
+            )
+        default = od_variable(od, index, subindex).default
+        return int(default) if default is not None else 0
+
+    return read
 
 
 def test_the_boot_plan_fits_the_vendor_eds(vendor_eds: Path) -> None:
     settings = vendor_settings(vendor_eds)
     od = settings.object_dictionary()
-    scaling = resolve_scaling(settings.scaling, od, no_drive)
+    scaling = resolve_scaling(settings.scaling, od, no_drive(od))
     plan = boot_plan(od, settings, LIMITS, scaling, period_s=0.001)
     assert check_plan(od, plan) == []
     assert {(w.index, w.subindex) for w in plan} >= {(0x1017, 0), (0x1016, 1), (0x1800, 1), (0x1A01, 2)}
@@ -160,7 +174,8 @@ def test_scaling_the_eds_cannot_give_is_asked_of_the_settings(eds: str, field: s
     settings = vendor_settings(path, **{field: None})
     expected = f"canopen.scaling.{field} is needed: the EDS has no {missing}"
     with pytest.raises(CanopenConfigError, match=expected):
-        resolve_scaling(settings.scaling, settings.object_dictionary(), no_drive)
+        od = settings.object_dictionary()
+        resolve_scaling(settings.scaling, od, no_drive(od))
 
 
 def test_the_driver_runs_a_twin_built_from_the_vendor_eds(
