@@ -28,14 +28,17 @@ from __future__ import annotations
 
 import contextlib
 import json
+import shutil
 import signal
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
 from collections.abc import Callable
+from pathlib import Path
 from typing import IO, Final, Literal
 
 from pydantic import Field
@@ -55,7 +58,7 @@ from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
 from sim_backend.cia402_twin import LOAD_COB_ID, Cia402Twin
 from sim_backend.daq_twin import DaqTwin
-from sim_backend.twin_process import serve_twins, watchdog_grace_s
+from sim_backend.twin_process import PlantLog, serve_twins, watchdog_grace_s
 
 TWINS: Final = ("in-process", "process")
 """The rig file's `twins:`: in this process (threads), or in a child process on a loopback TCP bus."""
@@ -101,6 +104,8 @@ class VirtualCanRig(HardwareRig):
         self.daq_twin: DaqTwin | None = None
         self.child: subprocess.Popen[str] | None = None
         """The twins' process, when the rig file says `twins: process`."""
+        self.child_plant_log: PlantLog | None = None
+        """The child's drive twin's sample of each SYNC (`twin_process.PlantLog`), in a temp dir."""
         self.plant_log: list[dict[str, float]] | None = None
         """When a list, the drive twin's own sample of each recorded cycle is appended (true θ_l and the
         rest, `SAMPLE_COLUMNS`): tests compare what the drivers measured with what the plant did."""
@@ -155,6 +160,12 @@ class VirtualCanRig(HardwareRig):
         """The twins in a child process (`sim_backend.twin_process`), the drivers here on its bus."""
         self._load_sent: float | None = None
         self._stderr_lines: list[str] = []
+        log_dir = Path(tempfile.mkdtemp(prefix="hdrig-twins-"))
+        try:
+            self.child_plant_log = PlantLog(log_dir / "plant.log", create=True)
+        except BaseException:
+            shutil.rmtree(log_dir, ignore_errors=True)
+            raise
         self.child = subprocess.Popen(
             [sys.executable, "-m", "sim_backend.twin_process"],
             stdin=subprocess.PIPE,
@@ -165,7 +176,11 @@ class VirtualCanRig(HardwareRig):
         servo_daq: SerialDaq | None = None
         try:
             assert self.child.stdin is not None and self.child.stdout is not None
-            spec = {"config": config.model_dump(mode="json"), "model": self.model.to_dict()}
+            spec = {
+                "config": config.model_dump(mode="json"),
+                "model": self.model.to_dict(),
+                "plant_log": str(self.child_plant_log.path),
+            }
             self.child.stdin.write(json.dumps(spec) + "\n")
             self.child.stdin.flush()
             where = json.loads(self._first_line(self.child.stdout))
@@ -179,7 +194,14 @@ class VirtualCanRig(HardwareRig):
             self._close_twins()
             raise
         try:
-            super().__init__(config, constants=constants, servo=servo, daq=servo_daq, load=self._send_load)
+            super().__init__(
+                config,
+                constants=constants,
+                servo=servo,
+                daq=servo_daq,
+                load=self._send_load,
+                sample_clock=self._plant_time,
+            )
         except BaseException:
             self._close_twins()
             raise
@@ -238,9 +260,15 @@ class VirtualCanRig(HardwareRig):
         self.twin.tau_ext_nm = tau_ext_nm
 
     def _plant_time(self, feedback: Feedback) -> float:
-        """The plant time of the sample the drive twin just reported (its last SYNC's row)."""
-        assert self.twin is not None
-        sample = self.twin.last_sample
+        """The plant time of the sample the drive twin just reported (its last SYNC's row), in this
+        process or the child's (written before the answer went out)."""
+        if self.twin is not None:
+            sample = self.twin.last_sample
+        else:
+            assert self.child_plant_log is not None
+            latest = self.child_plant_log.latest()
+            assert latest is not None  # the drive answered a SYNC: its sample is in
+            sample = latest
         if self.plant_log is not None:
             self.plant_log.append(dict(sample))
         return sample["t"]
@@ -254,8 +282,14 @@ class VirtualCanRig(HardwareRig):
     def _close_twins(self) -> None:
         daq_twin, twin, child = self.daq_twin, self.twin, self.child
         self.daq_twin, self.twin, self.child = None, None, None
-        if child is not None:
-            _end_child(child, watchdog_grace_s(self.config) + 2.0)
+        try:
+            if child is not None:
+                _end_child(child, watchdog_grace_s(self.config) + 2.0)
+        finally:
+            plant_log, self.child_plant_log = self.child_plant_log, None
+            if plant_log is not None:  # the rows took what they needed; the child has ended
+                plant_log.close()
+                shutil.rmtree(plant_log.path.parent, ignore_errors=True)
         try:
             if daq_twin is not None:
                 daq_twin.close()
