@@ -88,6 +88,14 @@ def ms(values: np.ndarray) -> str:
     )
 
 
+def syncs_answered(rig: VirtualCanRig) -> int:
+    """The SYNCs the drive twin has stepped the plant on, in this process or in the child."""
+    if rig.twin is not None:
+        return rig.twin.sync_count
+    assert rig.child_plant_log is not None
+    return rig.child_plant_log.count
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of closed loop (default 60)")
@@ -144,17 +152,23 @@ def main() -> None:
 
     load_before = os.getloadavg()[0]
     blocks: list[dict[str, np.ndarray]] = []
+    opened_s = time.monotonic()
     rig = VirtualCanRig(config)
+    opened_s = time.monotonic() - opened_s
+    child = (
+        "" if rig.child_start_s is None else f" (the twins' child answered after {rig.child_start_s:.2f} s)"
+    )
+    print(f"rig opened in {opened_s:.2f} s{child}")
     with rig, quiet_heap():  # this process owns the loop: its heap policy (rig.realtime)
         assert rig.daq is not None
         daq_rate = rig.daq.command("RATE?")
         rig.cycle_log = CycleLog()
         rig.enable()
-        syncs_before = rig.twin.sync_count if rig.twin is not None else 0
+        syncs_before = syncs_answered(rig)
         busy0, cpu0, wall0 = cpu_busy(), time.process_time(), time.monotonic()
         result = rig.run_segment(Segment(ControlMode.VELOCITY, setpoint, 0.0, "sine"), blocks.append)
         busy1, cpu1, wall1 = cpu_busy(), time.process_time(), time.monotonic()
-        syncs = rig.twin.sync_count - syncs_before if rig.twin is not None else None
+        syncs = syncs_answered(rig) - syncs_before
         rig.disable()
         tally = rig.daq_tally
         log = rig.cycle_log.arrays()
@@ -166,11 +180,10 @@ def main() -> None:
     within = float(np.mean(cycle_time <= period))
     late = int(np.count_nonzero(interval > LATE_SYNC_PERIODS * period))
     missing_rows = cycles - len(rows)
-    if in_process:  # rows carry the plant's own time, and the twin counts its SYNCs
-        broken = int(np.count_nonzero(np.abs(np.diff(rows) - period) > 1e-9))
-        extra_syncs = (syncs or 0) - len(rows)
-    else:  # rows carry SYNC host times; every row is one answered SYNC (an unanswered one ends the run)
-        broken, extra_syncs = 0, 0
+    # Rows carry the plant's own time (from the child's plant log when the twins are in a child), and
+    # the drive twin counts the SYNCs it stepped.
+    broken = int(np.count_nonzero(np.abs(np.diff(rows) - period) > 1e-9))
+    extra_syncs = syncs - len(rows)
     servo_lost = missing_rows + broken + abs(extra_syncs)
     seq_lost = sum(s.lost_samples for s in tally.streams)
     daq_lost = seq_lost + tally.index_gaps

@@ -6,7 +6,9 @@ the rig instance, so rigs and tests never share a bus; another interface, a Linu
 given), and the DAQ board's twin (`DaqTwin`) on a pty,
 measuring that very plant (`Cia402Twin.measured`). On them it opens a `HardwareRig`: the same servo
 driver, DAQ driver, alignment and envelope as on a bench, so a run exercises the real driver code end
-to end.
+to end. With `twins: process` (configs/rigs/virtual-can.yaml) both twins run in a child process
+instead (`sim_backend.twin_process`) on a loopback TCP bus, and the child hands back the drive twin's
+sample of each SYNC through a shared file (`PlantLog`): the rows and `plant_log` are as in one process.
 
 Time. In virtual time (`pace: virtual`, the default) the servo sends each SYNC as soon as the last
 one is answered (its `canopen.pace` is set from the rig's `pace`), and each SYNC steps the plant one
@@ -106,6 +108,8 @@ class VirtualCanRig(HardwareRig):
         """The twins' process, when the rig file says `twins: process`."""
         self.child_plant_log: PlantLog | None = None
         """The child's drive twin's sample of each SYNC (`twin_process.PlantLog`), in a temp dir."""
+        self.child_start_s: float | None = None
+        """From starting the child to its twins answering [s] (mostly imports: numba, canopen)."""
         self.plant_log: list[dict[str, float]] | None = None
         """When a list, the drive twin's own sample of each recorded cycle is appended (true θ_l and the
         rest, `SAMPLE_COLUMNS`): tests compare what the drivers measured with what the plant did."""
@@ -166,6 +170,7 @@ class VirtualCanRig(HardwareRig):
         except BaseException:
             shutil.rmtree(log_dir, ignore_errors=True)
             raise
+        started_s = time.monotonic()
         self.child = subprocess.Popen(
             [sys.executable, "-m", "sim_backend.twin_process"],
             stdin=subprocess.PIPE,
@@ -184,6 +189,7 @@ class VirtualCanRig(HardwareRig):
             self.child.stdin.write(json.dumps(spec) + "\n")
             self.child.stdin.flush()
             where = json.loads(self._first_line(self.child.stdout))
+            self.child_start_s = time.monotonic() - started_s
             threading.Thread(target=self._keep_stderr, name="twin stderr", daemon=True).start()
             settings = settings.model_copy(update={"interface": "hdrig-tcp", "channel": where["can"]})
             servo_daq = SerialDaq(where["daq"], timeout_s=stream.timeout_s, clock=time.monotonic)
