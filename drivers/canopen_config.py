@@ -257,8 +257,9 @@ def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: Objec
             "position_units_per_rev", 0x608F, 2, "motor revolutions"
         )
     position_per_rad = per_rev / (2 * math.pi)
+    named = settings.velocity_units_per_rad_s is None and settings.velocity_unit is not None
     velocity_per_rad_s = _agreed(
-        "velocity_units_per_rad_s",
+        f"velocity_unit ({settings.velocity_unit})" if named else "velocity_units_per_rad_s",
         _velocity_setting(settings, position_per_rad),
         group.velocity_units_per_rad_s(position_per_rad),
         group,
@@ -298,6 +299,7 @@ def _agreed(field: str, setting: float | None, drive: float | None, group: Facto
     if not math.isclose(setting, drive, rel_tol=UNITS_REL_TOL):
         raise CanopenConfigError(
             f"canopen.scaling.{field} = {setting:.7g} contradicts the drive: {group.said()} give {drive:.7g}"
+            " (per motor revolution, rad/s or rad/s²)"
         )
     return setting
 

@@ -314,8 +314,8 @@ class CanopenServo:
         decel = deceleration_rad_s2 if deceleration_rad_s2 is not None else acceleration_rad_s2
         self._write(
             [
-                SdoWrite(0x6083, 0, scaling.velocity_raw(acceleration_rad_s2), "profile acceleration"),
-                SdoWrite(0x6084, 0, scaling.velocity_raw(decel), "profile deceleration"),
+                SdoWrite(0x6083, 0, scaling.acceleration_raw(acceleration_rad_s2), "profile acceleration"),
+                SdoWrite(0x6084, 0, scaling.acceleration_raw(decel), "profile deceleration"),
             ]
         )
 
