@@ -16,6 +16,7 @@ from collections.abc import AsyncIterator, Iterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Annotated, Any, Literal
+from urllib.parse import urlencode
 
 from fastapi import APIRouter, Depends, FastAPI, Header, Query, Request, Response
 from fastapi import Path as PathParam
@@ -41,6 +42,7 @@ from api.schemas import (
 )
 from model.errors import UserInputError
 from model.params import load_model, preset_names
+from rig.catalog import DEFAULT_PAGE, MAX_PAGE
 from rig.config import RigConfig
 from rig.core import access, actions
 from rig.core.access import AuditEntry, KeyInfo
@@ -286,9 +288,28 @@ def _named(exc: UserInputError, body: RunRequest) -> ProblemError:
     return ProblemError(422, message, [FieldError(field=field, message=message)])
 
 
-@router.get("/runs", response_model=list[RunDocument], tags=["runs"], summary="the catalog, and queued runs")
+PAGE_HEADERS: dict[str, Any] = {
+    "X-Total-Count": {
+        "description": "the runs the filters select in the whole catalog (and the queue)",
+        "schema": {"type": "integer"},
+    },
+    "Link": {
+        "description": '`<URL>; rel="next"`: the next, older page (same filters), absent on the last page',
+        "schema": {"type": "string"},
+    },
+}
+
+
+@router.get(
+    "/runs",
+    response_model=list[RunDocument],
+    tags=["runs"],
+    summary="the catalog, a page at a time, and queued runs",
+    responses={200: {"description": "a page of runs, oldest first", "headers": PAGE_HEADERS}},
+)
 def runs(
     request: Request,
+    response: Response,
     who: Viewer,
     unit: Annotated[
         str | None, Query(max_length=100, description="gear unit serial, exact or a glob (HD25-*)")
@@ -300,23 +321,51 @@ def runs(
     operator: Annotated[
         str | None, Query(max_length=100, description="who started it, exact or a glob")
     ] = None,
+    experiment: Annotated[
+        str | None, Query(max_length=100, description="the experiment, exact or a glob")
+    ] = None,
+    status: Annotated[
+        RunStatus | None,
+        Query(description="only runs with this status (`queued`: those waiting for the rig)"),
+    ] = None,
+    limit: Annotated[
+        int,
+        Query(ge=1, le=MAX_PAGE, description=f"runs in the page (the newest before `cursor`), 1-{MAX_PAGE}"),
+    ] = DEFAULT_PAGE,
+    cursor: Annotated[
+        str | None,
+        Query(
+            max_length=1000, description='where the page begins: from the previous page\'s `Link: rel="next"`'
+        ),
+    ] = None,
 ) -> list[RunDocument]:
     worker = _worker(request)
+    page = actions.list_runs(
+        _store(request), unit, rig, tag or (), operator, experiment, status, limit=limit, cursor=cursor
+    )
     owners = {run_id: job.owner for job in worker.jobs() for run_id in job.runs}
     listed: dict[str, RunDocument] = {}
-    filtered = any(v is not None for v in (unit, rig, tag, operator))
-    for document in actions.list_runs(_store(request), unit=unit, rig=rig, tags=tag or (), operator=operator):
+    for document in page.runs:
         live = worker.live_run(document.id) if document.status == RunStatus.RUNNING else None
         if live is not None:
             live.samples = document.samples
         listed[document.id] = live or document
         listed[document.id].owner = owners.get(document.id)
-    for job in [] if filtered else worker.jobs():  # queued runs have no catalog entry to search yet
+    # Queued runs have no catalog entry to search or page through yet: the newest runs, on the first page.
+    searched = any(v is not None for v in (unit, rig, tag, operator, experiment))
+    waiting: list[RunDocument] = []
+    for job in [] if searched or status not in (None, RunStatus.QUEUED) else worker.jobs():
         if job.status == JobStatus.QUEUED:
-            for run_id in job.runs:
-                queued = worker.live_run(run_id)
-                if queued is not None:
-                    listed[run_id] = queued
+            found = (worker.live_run(run_id) for run_id in job.runs if run_id not in listed)
+            waiting += [run for run in found if run is not None]
+    if cursor is None:
+        listed.update((run.id, run) for run in waiting)
+    queued = len(waiting)
+    response.headers["X-Total-Count"] = str(page.total + queued)
+    if page.next_cursor is not None:
+        params = [(k, v) for k, v in request.query_params.multi_items() if k != "cursor"]
+        older = request.url.replace(query=urlencode([*params, ("cursor", page.next_cursor)]))
+        response.headers["Link"] = f'<{older}>; rel="next"'
     return list(listed.values())
 
 

@@ -27,7 +27,8 @@ from typing import Any, Literal
 import httpx
 
 from model.errors import UserInputError
-from rig.core.documents import ExperimentInfo, JobDocument, JobStatus, ModelSummary, RunDocument
+from rig.catalog import DEFAULT_PAGE, MAX_PAGE
+from rig.core.documents import ExperimentInfo, JobDocument, JobStatus, ModelSummary, RunDocument, RunPage
 from rig.status import RunStatus
 
 API = "/api/v1"
@@ -183,19 +184,83 @@ class HdrigClient:
             return JobDocument.model_validate(answer)
         return RunDocument.model_validate(answer)
 
+    def runs_page(
+        self,
+        unit: str | None = None,
+        rig: str | None = None,
+        tags: Sequence[str] = (),
+        operator: str | None = None,
+        experiment: str | None = None,
+        status: str | None = None,
+        limit: int = DEFAULT_PAGE,
+        cursor: str | None = None,
+    ) -> RunPage:
+        """One page of the catalog (one request): the newest `limit` runs (1 to 1000) before `cursor` (a
+        page's `next_cursor`; None: from the newest), oldest first, the runs of a unit, rig, operator or
+        experiment (exact or a glob such as `HD25-*`) with a status and every one of `tags`. Queued runs
+        come on the first page of an unfiltered listing."""
+        query: list[tuple[str, str | int]] = [("tag", t) for t in tags]  # repeated: a list, not a dict
+        query += [
+            (k, v)
+            for k, v in (
+                ("unit", unit),
+                ("rig", rig),
+                ("operator", operator),
+                ("experiment", experiment),
+                ("status", status),
+                ("limit", limit),
+                ("cursor", cursor),
+            )
+            if v is not None
+        ]
+        response = self._request("GET", "/runs", params=query)
+        runs = [RunDocument.model_validate(r) for r in response.json()]
+        older = response.links.get("next", {}).get("url")
+        return RunPage(
+            runs=runs,
+            total=int(response.headers.get("X-Total-Count", len(runs))),
+            next_cursor=httpx.URL(older).params.get("cursor") if older else None,
+        )
+
+    def newest_runs(
+        self,
+        unit: str | None = None,
+        rig: str | None = None,
+        tags: Sequence[str] = (),
+        operator: str | None = None,
+        experiment: str | None = None,
+        status: str | None = None,
+        limit: int | None = None,
+    ) -> RunPage:
+        """The newest `limit` runs of the catalog (every one when None), oldest first, read a page at a
+        time (filters as `runs_page`); `total` counts all the filters select, `next_cursor` the older rest.
+        Runs added meanwhile are newer than the first page: no run is listed twice or left out."""
+        pages: list[list[RunDocument]] = []
+        total, cursor, got = 0, None, 0
+        while limit is None or got < limit:
+            size = MAX_PAGE if limit is None else min(MAX_PAGE, limit - got)
+            page = self.runs_page(unit, rig, tags, operator, experiment, status, size, cursor)
+            total = total if pages else page.total
+            pages.append(page.runs)
+            got += sum(run.status != RunStatus.QUEUED for run in page.runs)  # the queue is not paged
+            cursor = page.next_cursor
+            if cursor is None:
+                break
+        return RunPage(
+            runs=[run for runs in reversed(pages) for run in runs], total=total, next_cursor=cursor
+        )
+
     def runs(
         self,
         unit: str | None = None,
         rig: str | None = None,
         tags: Sequence[str] = (),
         operator: str | None = None,
+        limit: int | None = None,
     ) -> list[RunDocument]:
-        """The catalog, or the runs of a unit, rig or operator (exact or a glob such as `HD25-*`) that carry
-        every one of `tags`."""
-        query: list[tuple[str, str]] = [("tag", t) for t in tags]
-        query += [(k, v) for k, v in (("unit", unit), ("rig", rig), ("operator", operator)) if v is not None]
-        answer = self._request("GET", "/runs", params=query).json()  # `tag` repeated: a list, not a dict
-        return [RunDocument.model_validate(r) for r in answer]
+        """The catalog (the newest `limit` runs; every one when None), oldest first, or the runs of a unit,
+        rig or operator (exact or a glob such as `HD25-*`) that carry every one of `tags`."""
+        return self.newest_runs(unit=unit, rig=rig, tags=tags, operator=operator, limit=limit).runs
 
     def run(self, run_id: str) -> RunDocument:
         return RunDocument.model_validate(self._get(f"/runs/{run_id}"))

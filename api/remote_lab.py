@@ -19,6 +19,7 @@ from typing import Any, Literal
 from api.client import POLL_S, HdrigClient, ServiceError, ServiceInputError
 from model.errors import UserInputError
 from model.run import Run
+from rig.catalog import DEFAULT_PAGE
 from rig.core.actions import MODEL_FILE
 from rig.core.documents import (
     ExperimentInfo,
@@ -28,6 +29,7 @@ from rig.core.documents import (
     JobStatus,
     ModelSummary,
     RunDocument,
+    RunPage,
 )
 from rig.faults import DeviceFaultError
 from rig.lab import Landed
@@ -126,8 +128,11 @@ class RemoteLab:
         rig: str | None = None,
         tags: Sequence[str] = (),
         operator: str | None = None,
-    ) -> list[RunDocument]:
-        return self.client.runs(unit=unit, rig=rig, tags=tags, operator=operator)
+        experiment: str | None = None,
+        status: str | None = None,
+        limit: int | None = DEFAULT_PAGE,
+    ) -> RunPage:
+        return self.client.newest_runs(unit, rig, tags, operator, experiment, status, limit)
 
     def run_document(self, run_id: str) -> RunDocument:
         return self.client.run(run_id)

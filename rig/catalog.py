@@ -10,15 +10,22 @@ creates only what is missing.
 
 Writes on SQLite take the write lock when they begin (`BEGIN IMMEDIATE`), so two writers wait for each
 other (busy timeout 30 s) instead of one failing on a read-then-write; readers never wait (WAL mode).
+
+The runs are listed in pages (`page_of_runs`): newest first by (`started`, `id`), a page the next `limit`
+runs before a keyset cursor, read from the summary columns (never the `meta` JSON).
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import contextlib
+import json
 import os
 import sqlite3
 import threading
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +36,8 @@ from sqlalchemy.engine import URL, Connection, Engine, make_url
 from model.errors import UserInputError
 
 MIGRATIONS = Path(__file__).with_name("catalog_migrations")
+DEFAULT_PAGE = 100  # runs in a page when the caller does not say (the CLI's and the service's listing)
+MAX_PAGE = 1000  # the service's largest page: one answer stays well under a second and a few MB
 CATALOG_FILE = "catalog.sqlite"
 BUSY_TIMEOUT_S = 30.0  # a writer waits this long for another's transaction before it fails
 
@@ -290,3 +299,92 @@ def head_revision() -> str:
 def is_unique_violation(exc: BaseException) -> bool:
     """Whether an error is a duplicate key (a run id or key name taken), on any database."""
     return isinstance(exc, sa.exc.IntegrityError)
+
+
+# ---- pages of the run list ------------------------------------------------------------------------
+
+SUMMARY_COLUMNS = tuple(c for c in runs.c if c.name not in ("meta", "pid", "host", "pid_started"))
+"""What a run's line in a listing needs: every column but the metadata JSON and the writer's process."""
+
+
+@dataclass(frozen=True)
+class Cursor:
+    """A position in the run list (newest first by `started`, then `id`): a page holds the runs before it.
+
+    A run's (`started`, `id`) never changes, so pages walked with the cursors they hand out list every run
+    that was in the catalog when the walk began once and only once, whatever is added meanwhile (new runs
+    are newer than the first page: they show on the next walk's first page)."""
+
+    started: str
+    run_id: str
+
+    def encode(self) -> str:
+        """The opaque token a client passes back (`cursor=`): URL-safe, no padding."""
+        raw = json.dumps([self.started, self.run_id], separators=(",", ":")).encode()
+        return base64.urlsafe_b64encode(raw).decode().rstrip("=")
+
+    @classmethod
+    def decode(cls, token: str) -> Cursor:
+        """The cursor a token stands for; a token this code did not make is a one-line error naming it."""
+        try:
+            fields = json.loads(base64.urlsafe_b64decode(token + "=" * (-len(token) % 4)))
+        except (binascii.Error, ValueError):  # not base64, not UTF-8 or not JSON
+            fields = None
+        if not (isinstance(fields, list) and len(fields) == 2 and all(isinstance(f, str) for f in fields)):
+            raise UserInputError(
+                f"cursor {token[:40]!r}: not a cursor of this catalog (pass the one a listing gave)"
+            )
+        return cls(fields[0], fields[1])
+
+
+@dataclass(frozen=True)
+class RunRows:
+    """One page of the run list, read in one transaction."""
+
+    rows: list[dict[str, Any]]
+    """The summary columns of each run (`SUMMARY_COLUMNS`, `metrics` still JSON text), oldest first."""
+    tags: dict[str, list[str]]
+    """Each listed run's tags, sorted (runs without tags absent)."""
+    total: int
+    """The runs the filters select in the whole catalog."""
+    older: Cursor | None
+    """Where the next (older) page begins; None when this page reaches the oldest run."""
+
+
+def check_limit(limit: int | None) -> None:
+    """A page's size is a count of runs: at least 1 (None: no limit)."""
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
+        raise UserInputError(f"limit {limit!r}: a page holds at least 1 run")
+
+
+def page_of_runs(catalog: Catalog, where: list[Any], limit: int | None, before: Cursor | None) -> RunRows:
+    """The newest `limit` runs (every one when None) that `where` selects and that come before `before`
+    (from the newest when None), oldest first; with the count of all runs `where` selects."""
+    check_limit(limit)
+    selected = list(where)
+    if before is not None:
+        key = sa.tuple_(runs.c.started, runs.c.id)
+        selected.append(key < sa.tuple_(sa.literal(before.started), sa.literal(before.run_id)))
+    newest_first = (runs.c.started.desc(), runs.c.id.desc())
+    query = sa.select(*SUMMARY_COLUMNS).where(*selected).order_by(*newest_first)
+    ids = sa.select(runs.c.id).where(*selected).order_by(*newest_first)
+    if limit is not None:
+        query = query.limit(limit + 1)  # one more than asked tells whether an older page exists
+        ids = ids.limit(limit)
+    tags_query = (
+        sa.select(run_tags.c.run_id, run_tags.c.tag)
+        .where(run_tags.c.run_id.in_(ids.scalar_subquery()))
+        .order_by(run_tags.c.run_id, run_tags.c.tag)
+    )
+    count = sa.select(sa.func.count()).select_from(runs).where(*where)
+    with catalog.read() as db:  # one transaction (on SQLite one snapshot: page, tags and count agree)
+        rows = [dict(r._mapping) for r in db.execute(query)]
+        tags: dict[str, list[str]] = {}
+        for run_id, tag in db.execute(tags_query):
+            tags.setdefault(run_id, []).append(tag)
+        total = int(db.execute(count).scalar_one())
+    more = limit is not None and len(rows) > limit
+    rows = rows[:limit]
+    older = Cursor(rows[-1]["started"], rows[-1]["id"]) if more else None
+    rows.reverse()
+    return RunRows(rows, tags, total, older)

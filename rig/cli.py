@@ -240,28 +240,63 @@ def cmd_run(args: argparse.Namespace) -> int:
 # --- hdrig runs ----------------------------------------------------------------------------------
 
 
+def _page_size(text: str) -> int:
+    """`--limit`: a count of runs, at least 1."""
+    try:
+        count = int(text)
+    except ValueError:
+        count = 0
+    if count < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a count of runs (1 or more)")
+    return count
+
+
 def cmd_runs_list(args: argparse.Namespace) -> int:
+    from rig.catalog import DEFAULT_PAGE
+
     lab = _lab(args)
-    runs = lab.list_runs(unit=args.unit, rig=args.rig, tags=args.tag, operator=args.operator)
+    page = lab.list_runs(
+        unit=args.unit,
+        rig=args.rig,
+        tags=args.tag,
+        operator=args.operator,
+        experiment=args.experiment,
+        status=args.status,
+        limit=None if args.all else args.limit or DEFAULT_PAGE,
+    )
+    runs = page.runs
     if args.json:
-        return _print_json(runs)
-    if not runs:
+        _print_json(runs)
+    elif runs:
+        header = {"id": "id", "experiment": "experiment", "status": "status", "started": "started (UTC)"}
+        rows = [
+            {
+                "id": r.id,
+                "experiment": r.experiment,
+                "status": str(r.status),
+                "started": (r.started or "")[:19],
+            }
+            for r in runs
+        ]
+        width = {key: max(len(row[key]) for row in [header, *rows]) for key in header}
+        for row, run in zip([header, *rows], [None, *runs], strict=True):
+            cells = "  ".join(f"{row[key]:<{width[key]}}" for key in header)
+            samples = "samples" if run is None else str(run.samples)
+            reason = "" if run is None or not run.reason else f"  {run.reason}"
+            if run is not None and run.analysis in ("interrupted", "failed"):
+                reason += f"  analysis: {run.analysis}"
+            print(f"{cells}  {samples:>8}{reason}")
+    plural = "s" if page.total != 1 else ""
+    older = page.total - len(runs)
+    if not page.total:
         _say(f"no runs in {lab.store_where}")
-        return 0
-    header = {"id": "id", "experiment": "experiment", "status": "status", "started": "started (UTC)"}
-    rows = [
-        {"id": r.id, "experiment": r.experiment, "status": str(r.status), "started": (r.started or "")[:19]}
-        for r in runs
-    ]
-    width = {key: max(len(row[key]) for row in [header, *rows]) for key in header}
-    for row, run in zip([header, *rows], [None, *runs], strict=True):
-        cells = "  ".join(f"{row[key]:<{width[key]}}" for key in header)
-        samples = "samples" if run is None else str(run.samples)
-        reason = "" if run is None or not run.reason else f"  {run.reason}"
-        if run is not None and run.analysis in ("interrupted", "failed"):
-            reason += f"  analysis: {run.analysis}"
-        print(f"{cells}  {samples:>8}{reason}")
-    _say(f"{len(runs)} run{'s' if len(runs) != 1 else ''} in {lab.store_where}")
+    elif older > 0:
+        _say(
+            f"the newest {len(runs)} of {page.total} run{plural} in {lab.store_where};"
+            f" {older} older not shown (--limit N, or --all)"
+        )
+    else:
+        _say(f"{len(runs)} run{plural} in {lab.store_where}")
     return 0
 
 
@@ -674,8 +709,17 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(handler=cmd_run)
 
     runs = _group(sub, "runs", "the run catalog: list, show, analyze and export runs")
-    listed = "every run: id, experiment, status, started, samples"
-    searched = _command(runs, "list", cmd_runs_list, listed, json="the catalog as a JSON list")
+    listed = "the newest runs (a page; --all: every one): id, experiment, status, started, samples"
+    searched = _command(runs, "list", cmd_runs_list, listed, json="the runs listed, as a JSON list")
+    how_many = searched.add_mutually_exclusive_group()
+    how_many.add_argument(
+        "--limit", type=_page_size, metavar="N", help="the newest N runs (default: a page of the newest)"
+    )
+    how_many.add_argument("--all", action="store_true", help="every run the filters select")
+    searched.add_argument(
+        "--experiment", metavar="NAME", help="only this experiment's runs (exact or a glob)"
+    )
+    searched.add_argument("--status", choices=[s.value for s in RunStatus], help="only runs with this status")
     searched.add_argument("--unit", metavar="SERIAL", help="only this gear unit's runs (a glob: 'HD25-*')")
     searched.add_argument("--rig", metavar="NAME", help="only this rig's runs (exact or a glob)")
     searched.add_argument("--operator", metavar="WHO", help="only the runs this key name or OS user started")

@@ -15,8 +15,16 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from model.errors import UserInputError
 from model.params import PRESET_DIR
+from rig.catalog import DEFAULT_PAGE
 from rig.core import actions
-from rig.core.documents import ExperimentInfo, FitDocument, GapsDocument, ModelSummary, RunDocument
+from rig.core.documents import (
+    ExperimentInfo,
+    FitDocument,
+    GapsDocument,
+    ModelSummary,
+    RunDocument,
+    RunPage,
+)
 from rig.faults import DeviceFaultError
 from rig.runner import Progress
 from rig.status import RunStatus
@@ -65,8 +73,13 @@ class Lab(Protocol):
         rig: str | None = None,
         tags: Sequence[str] = (),
         operator: str | None = None,
-    ) -> list[RunDocument]:
-        """The catalog's runs, or those of a unit, rig or operator (exact or a glob) with all `tags`."""
+        experiment: str | None = None,
+        status: str | None = None,
+        limit: int | None = DEFAULT_PAGE,
+    ) -> RunPage:
+        """The newest `limit` runs of the catalog (every one when None), oldest first, with how many the
+        filters select in all: a unit, rig, operator or experiment (exact or a glob), a status, all
+        `tags`."""
         ...
 
     def run_document(self, run_id: str) -> RunDocument: ...
@@ -168,8 +181,13 @@ class LocalLab:
         rig: str | None = None,
         tags: Sequence[str] = (),
         operator: str | None = None,
-    ) -> list[RunDocument]:
-        return actions.list_runs(self.store, unit=unit, rig=rig, tags=tags, operator=operator)
+        experiment: str | None = None,
+        status: str | None = None,
+        limit: int | None = DEFAULT_PAGE,
+    ) -> RunPage:
+        return actions.list_runs(
+            self.store, unit, rig, tags, operator, experiment=experiment, status=status, limit=limit
+        )
 
     def run_document(self, run_id: str) -> RunDocument:
         return actions.run_document(self.store, run_id)

@@ -177,7 +177,9 @@ def test_run_json_is_one_object_and_set_reaches_the_parameters(tmp_path: Path) -
     assert (outcome["experiment"], outcome["status"], outcome["reason"]) == ("speed-sweep", "complete", None)
     assert outcome["metrics"]["speeds"] == 2
     (entry,) = runs_json(tmp_path)
-    assert entry["id"] == outcome["id"] and entry["meta"]["params"]["speeds_rad_s"] == [1.0, 10.0]
+    assert entry["id"] == outcome["id"] and entry["meta"] == {}  # a listing is a summary: no metadata
+    shown = hdrig(tmp_path, "runs", "show", outcome["id"], "--json")
+    assert json.loads(shown.stdout)["meta"]["params"]["speeds_rad_s"] == [1.0, 10.0]
 
 
 def test_campaign_runs_every_experiment_in_order_with_dotted_set(tmp_path: Path) -> None:
@@ -189,9 +191,10 @@ def test_campaign_runs_every_experiment_in_order_with_dotted_set(tmp_path: Path)
     outcomes = json.loads(result.stdout)
     assert [o["experiment"] for o in outcomes] == list(CAMPAIGN_ORDER)
     assert all(o["status"] == "complete" for o in outcomes), outcomes
-    by_id = {entry["id"]: entry for entry in runs_json(tmp_path)}
+    assert [entry["id"] for entry in runs_json(tmp_path)] == [o["id"] for o in outcomes]  # oldest first
     sweep = next(o for o in outcomes if o["experiment"] == "speed-sweep")
-    assert by_id[sweep["id"]]["meta"]["params"]["speeds_rad_s"] == [2.0, 20.0]
+    shown = json.loads(hdrig(tmp_path, "runs", "show", sweep["id"], "--json").stdout)
+    assert shown["meta"]["params"]["speeds_rad_s"] == [2.0, 20.0]
 
 
 # ---- bad input: one line, exit 2 ------------------------------------------------------------------

@@ -477,8 +477,9 @@ async function abortRun() {
 // ---- recent runs --------------------------------------------------------------------------------
 
 async function refreshRuns() {
-  const runs = await request("GET", "/runs");
-  const recent = runs.slice(-RECENT_RUNS).reverse(); // the catalog is oldest first
+  // One page of the newest runs (and any queued), oldest first: the catalog itself may hold 100,000.
+  const runs = await request("GET", `/runs?limit=${RECENT_RUNS}`);
+  const recent = runs.slice(-RECENT_RUNS).reverse();
   const body = $("runs").tBodies[0];
   const rows = new Map([...body.rows].map((row) => [row.dataset.id, row]));
   const wanted = recent.map((run) => {

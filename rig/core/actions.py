@@ -12,6 +12,7 @@ model to that file instead, `report_dir=` writes the report (plots, tables, summ
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -24,6 +25,7 @@ import yaml
 from model.errors import UserInputError
 from model.params import load_model, preset_names
 from model.run import Run
+from rig.catalog import DEFAULT_PAGE, Cursor, page_of_runs
 from rig.config import RigConfig
 from rig.core.documents import (
     ExperimentInfo,
@@ -35,6 +37,7 @@ from rig.core.documents import (
     ModelSummary,
     PlannedRun,
     RunDocument,
+    RunPage,
     RunPlan,
     TrendDocument,
 )
@@ -44,7 +47,7 @@ from rig.interface import ModeRefusedError, Rig
 from rig.runfile import json_text
 from rig.runner import Progress, RunHooks, RunOutcome, analyze_stored, make_params, run_experiment
 from rig.status import RunStatus
-from rig.store import ARTIFACTS_DIR, RunStore, check_tags, load_runs, new_run_id
+from rig.store import ARTIFACTS_DIR, AnalysisState, RunStore, check_tags, load_runs, new_run_id, run_filter
 
 if TYPE_CHECKING:
     from model.gaps import GapsResult
@@ -260,11 +263,33 @@ def list_runs(
     rig: str | None = None,
     tags: Sequence[str] = (),
     operator: str | None = None,
-) -> list[RunDocument]:
-    """The runs in the catalog, oldest first (artifacts are listed by `show_run`): every one, or those of
-    a `unit`, `rig` or `operator` (exact, or a glob such as `HD25-*`) carrying all of `tags`."""
-    found = store.list_runs(unit=unit, rig=rig, tags=tags, operator=operator)
-    return [_document(store, entry, with_artifacts=False) for entry in found]
+    experiment: str | None = None,
+    status: str | None = None,
+    limit: int | None = DEFAULT_PAGE,
+    cursor: str | None = None,
+) -> RunPage:
+    """A page of the catalog: the newest `limit` runs (every one when None) before `cursor` (a page's
+    `next_cursor`; from the newest when None), oldest first, with the count of all the filters select.
+    Filters: `unit`, `rig`, `operator`, `experiment` (exact, or a glob such as `HD25-*`), `status`, and
+    all of `tags`. A page is read from the catalog's summary columns (no metadata: `run_document` has it;
+    no artifacts: `show_run` lists them)."""
+    where = run_filter(unit=unit, rig=rig, tags=tags, operator=operator, experiment=experiment, status=status)
+    page = page_of_runs(store.catalog, where, limit, Cursor.decode(cursor) if cursor else None)
+    documents = []
+    for row in page.rows:
+        if row["status"] == RunStatus.RUNNING or row["analysis"] == AnalysisState.RUNNING:
+            # The store marks a run (or analysis) whose process has died `interrupted` when it reads it.
+            entry = store.get(row["id"]) | {"meta": {}}
+        else:
+            entry = row | {
+                "metrics": json.loads(row["metrics"]),
+                "meta": {},
+                "path": store.data.display(row["path"]),
+                "tags": page.tags.get(row["id"], []),
+            }
+        documents.append(_document(store, entry, with_artifacts=False))
+    older = page.older.encode() if page.older is not None else None
+    return RunPage(runs=documents, total=page.total, next_cursor=older)
 
 
 def run_document(store: RunStore, run_id: str, outcome: RunOutcome | None = None) -> RunDocument:

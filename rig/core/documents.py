@@ -70,7 +70,11 @@ class RunDocument(Document):
     samples: int = Field(default=0, description="samples on disk")
     progress: float = Field(default=0.0, ge=0.0, le=1.0, description="fraction of the run done")
     metrics: dict[str, Any] = Field(default_factory=dict, description="the analysis' scalar results")
-    meta: dict[str, Any] = Field(default_factory=dict, description="the run's metadata (params, segments...)")
+    meta: dict[str, Any] = Field(
+        default_factory=dict,
+        description="the run's metadata (params, segments...); left out of listings (empty there): one"
+        " run's document has it",
+    )
     path: str | None = Field(default=None, description="the run's data file")
     run_dir: str | None = Field(default=None, description="the run's folder (data, artifacts/)")
     artifacts: list[str] = Field(default_factory=list, description="tables, results.json and plots")
@@ -84,6 +88,20 @@ class RunDocument(Document):
         default=None,
         description="its analysis: running, done, interrupted (the process died: `hdrig runs analyze RUN`"
         " runs it again) or failed; None for a run that was not analyzed (aborted, or older)",
+    )
+
+
+class RunPage(Document):
+    """A page of the catalog (`hdrig runs list`; `GET /api/v1/runs` answers with `runs` as its body, `total`
+    as `X-Total-Count` and `next_cursor` in its `Link: <...>; rel="next"`)."""
+
+    runs: list[RunDocument] = Field(
+        description="the newest runs before the cursor (from the newest when none), oldest first; each"
+        " without its `meta` and `artifacts`"
+    )
+    total: int = Field(ge=0, description="the runs the filters select in the whole catalog")
+    next_cursor: str | None = Field(
+        default=None, description="pass as `cursor` for the next, older page; None on the last page"
     )
 
 
