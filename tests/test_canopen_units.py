@@ -26,6 +26,7 @@ from typing import Any
 import canopen
 import numpy as np
 import pytest
+import yaml
 
 from drivers.can_bus import open_bus
 from drivers.canopen_config import (
@@ -45,7 +46,10 @@ from drivers.cia402 import OperationMode, State
 from drivers.pdo_layout import od_variable
 from hdrig_testing.can_bus import TWIN_SYNC_TIMEOUT_S, bus_settings_for_test
 from model.params import HarmonicDriveModel
-from rig.config import RIG_DIR, load_rig_config
+from rig.config import RIG_DIR, RigConfig, load_rig_config
+from rig.runner import run_experiment
+from rig.status import RunStatus
+from rig.store import RunStore
 from sim_backend.cia402_twin import Cia402Twin
 
 NODE = 3
@@ -325,3 +329,24 @@ def test_a_rig_setting_the_drive_contradicts_is_refused_at_boot_before_anything_
     assert str(refused.value).startswith(
         "canopen.scaling.position_units_per_rev = 131072 contradicts the drive"
     )
+
+
+@pytest.mark.parametrize("eds", [DEGREES, RPM], ids=["output-degrees", "rpm-velocity-factor"])
+def test_the_speed_sweep_runs_through_the_virtual_can_rig_in_the_drives_units(
+    eds: Path, tmp_path: Path
+) -> None:
+    data = yaml.safe_load((RIG_DIR / "virtual-can.yaml").read_text())
+    data["canopen"]["eds"] = str(eds)  # the scaling left to the drive: only the torque constant is set
+    config = RigConfig.model_validate(data)
+    sweep = {"speeds_rad_s": [5.0, 20.0], "settle_s": 0.1, "hold_s": 0.1}
+    outcome = run_experiment("speed-sweep", config, sweep, RunStore(tmp_path))
+    assert outcome.status == RunStatus.COMPLETE, outcome.reason
+    run = RunStore(tmp_path).read(outcome.run_id)
+    # Each held speed's second half, motor side (the drive's units turned back into rad/s): the mean
+    # within 0.5 rad/s of the setpoint. The loop ripples ±2 rad/s under friction; averaged over 0.1 s it
+    # was measured within 0.22 rad/s; a units error is a factor (57 or 191 units per rad/s here).
+    for segment in run.meta["segments"]:
+        held = slice(segment["start"] + segment["cycles"] // 2, segment["start"] + segment["cycles"])
+        speed = float(np.mean(run["setpoint"][held]))
+        assert abs(speed) in (5.0, 20.0), segment
+        assert float(np.mean(run["omega_m"][held])) == pytest.approx(speed, abs=0.5), segment["label"]
