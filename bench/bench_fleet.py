@@ -5,6 +5,9 @@ Prints each figure beside its target. PostgreSQL is Debian's, started in a tempo
 with fsync on (hdrig_testing.fleet_services). The batch fit uses small runs per unit: a speed sweep of two
 speeds (0.3 s holds) and a 4-pulse train recorded once on the simulated rig, copied into the store under
 200 unit serials, fitted by the staged estimates (`--no-joint`; the joint refinement adds ~2 s a unit).
+The listing: the first page and a page 90,000 runs deep (what `hdrig runs list` and GET /runs call, and
+GET /runs itself through the app in-process), and every run (`runs list --all`). `--catalog`: the catalog
+queries alone.
 """
 
 from __future__ import annotations
@@ -24,8 +27,9 @@ import sqlalchemy as sa
 
 from hdrig_testing.fleet_services import postgres_server
 from rig import catalog as tables
+from rig.catalog import Cursor
 from rig.config import load_rig_config
-from rig.core import actions, fleet
+from rig.core import access, actions, fleet
 from rig.store import RunStore
 
 RUNS = 100_000
@@ -34,7 +38,9 @@ RIGS = 20
 BATCH_UNITS = 200
 EPOCH = datetime(2026, 1, 1, tzinfo=UTC)  # the synthetic runs start every 5 min from here
 TARGETS_MS = {"one run by id": 10.0, "a unit's runs": 50.0, "a glob of 10 units": 100.0, "a tag": 250.0,
-              "newest 100": 50.0}  # fmt: skip
+              "newest 100": 50.0, "first page": 50.0, "page 90,000 deep": 50.0,
+              "first page, REST": 100.0}  # fmt: skip
+DEEP = 90_000  # the deep page starts after this many newer runs
 
 
 def timed_ms(action: Callable[[], Any], repeat: int = 20) -> float:
@@ -47,15 +53,21 @@ def timed_ms(action: Callable[[], Any], repeat: int = 20) -> float:
     return statistics.median(times)
 
 
+def synthetic_run(n: int) -> tuple[str, str]:
+    """The id and start of the n-th synthetic run (every 5 min from EPOCH)."""
+    run_id = f"2026{n // 86400 % 12 + 1:02d}01-{n % 86400:06d}-pulse-{n:05x}"
+    return run_id, (EPOCH + timedelta(seconds=300 * n)).isoformat(timespec="milliseconds")
+
+
 def fill(store: RunStore) -> None:
     """100,000 complete runs: 20 rigs, 2,000 units, a tag on every tenth, as one bulk insert."""
     rows, tags = [], []
     for n in range(RUNS):
-        run_id = f"2026{n // 86400 % 12 + 1:02d}01-{n % 86400:06d}-pulse-{n:05x}"
+        run_id, started = synthetic_run(n)
         rows.append(
             {
                 "id": run_id, "experiment": "pulse", "rig": f"bench-{n % RIGS:02d}", "status": "complete",
-                "started": (EPOCH + timedelta(seconds=300 * n)).isoformat(timespec="milliseconds"),
+                "started": started,
                 "samples": 4000, "metrics": "{}",
                 "path": f"runs/{run_id}/data.parquet", "meta": '{"sample_rate_hz": 1000.0}',
                 "unit": f"HD25-{n % UNITS:04d}", "operator": f"op{n % 7}",
@@ -73,19 +85,44 @@ def catalog_queries(name: str, store: RunStore) -> dict[str, float]:
     fill(store)
     fill_s = time.perf_counter() - start
     some = store.list_runs(unit="HD25-0042")[0]["id"]
+    deep = Cursor(*reversed(synthetic_run(RUNS - DEEP)))  # the page holds the 100 runs before it
+    assert actions.list_runs(store, cursor=deep.encode()).runs[-1].id == synthetic_run(RUNS - DEEP - 1)[0]
     figures = {
         "one run by id": timed_ms(lambda: store.get(some)),
         "a unit's runs": timed_ms(lambda: store.list_runs(unit="HD25-0042")),
         "a glob of 10 units": timed_ms(lambda: store.list_runs(unit="HD25-004*")),
         "a tag": timed_ms(lambda: store.list_runs(tags=["line=1"], rig="bench-07"), repeat=5),
         "newest 100": timed_ms(lambda: store.list_runs(limit=100)),
+        # what `hdrig runs list` and GET /runs call: a page of 100 documents from the summary columns
+        "first page": timed_ms(lambda: actions.list_runs(store)),
+        "page 90,000 deep": timed_ms(lambda: actions.list_runs(store, cursor=deep.encode())),
+        "first page, REST": rest_first_page_ms(store),
     }
-    every = timed_ms(lambda: store.list_runs(), repeat=1)
-    print(f"\n{name}: 100,000 runs inserted in {fill_s:.1f} s; whole catalog listed in {every / 1e3:.2f} s")
+    every = timed_ms(lambda: actions.list_runs(store, limit=None), repeat=1)
+    print(
+        f"\n{name}: 100,000 runs inserted in {fill_s:.1f} s; every run listed (`runs list --all`,"
+        f" summaries) in {every / 1e3:.2f} s"
+    )
     for what, ms in figures.items():
         verdict = "ok" if ms <= TARGETS_MS[what] else "MISS"
         print(f"  {what:<20} {ms:8.2f} ms   target <= {TARGETS_MS[what]:.0f} ms  {verdict}")
     return figures
+
+
+def rest_first_page_ms(store: RunStore) -> float:
+    """GET /api/v1/runs (the default page of 100) through the service's app in this process (TestClient:
+    routing, auth, validation and JSON of the documents; no socket)."""
+    from fastapi.testclient import TestClient
+
+    from api.app import create_app
+
+    token = access.create_key(store, "viewer", f"bench-{time.monotonic_ns()}")
+    with TestClient(create_app(load_rig_config("sim"), store)) as client:
+        client.headers["Authorization"] = f"Bearer {token}"
+        answer = client.get("/api/v1/runs")
+        assert answer.status_code == 200 and len(answer.json()) == 100, answer.text
+        assert answer.headers["X-Total-Count"] == str(RUNS)
+        return timed_ms(lambda: client.get("/api/v1/runs"))
 
 
 WRITER = textwrap.dedent(
@@ -190,6 +227,7 @@ def batch(store: RunStore) -> None:
 
 def main() -> None:
     only_batch = sys.argv[1:] == ["--batch"]  # the batch fit alone
+    only_catalog = sys.argv[1:] == ["--catalog"]  # the catalog queries alone (SQLite, PostgreSQL)
     with tempfile.TemporaryDirectory(prefix="hdrig-bench-fleet-") as scratch:
         folder = Path(scratch)
         if only_batch:
@@ -200,6 +238,8 @@ def main() -> None:
         with postgres_server(fsync=True) as server:
             pg_url = server.new_database()
             catalog_queries("PostgreSQL", RunStore(folder / "b", catalog=pg_url))
+            if only_catalog:
+                return
             writers("PostgreSQL", server.new_database(), folder)
         writers("SQLite", f"sqlite:///{folder / 'writers.sqlite'}", folder)
         batch(RunStore(folder / "fleet"))
