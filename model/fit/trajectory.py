@@ -33,7 +33,7 @@ from model import kernel as k
 from model.errors import UserInputError
 from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel
-from model.plant import Plant
+from model.plant import INPUT_COLUMN, InputMode, Plant
 from model.run import Run
 from model.simulate import replay_mode, replay_rows
 
@@ -63,6 +63,26 @@ class TrajectoryFit:
     residuals: int
     notes: list[str] = field(default_factory=list)
     prior_weight: float = 0.0  # λ of the prior rows at the optimum (0: no priors)
+    data_only: dict[str, Prior] = field(default_factory=dict)  # `data_only_estimates` at the optimum
+
+
+def data_only_estimates(
+    problem: TrajectoryProblem, jac: np.ndarray, fun: np.ndarray, x: np.ndarray
+) -> dict[str, Prior]:
+    """What the trajectories alone say of each free parameter near an optimum found with priors: one
+    Gauss–Newton step without the prior rows, σ window-clustered (value, 1σ). Beside a prior, it tells
+    whether the two disagree by more than their σ allow: a bias one of them carries."""
+    m = problem.size
+    data_jac, data_fun = jac[:m], fun[:m]
+    n = data_jac.shape[1]
+    step = -np.linalg.pinv(data_jac.T @ data_jac) @ (data_jac.T @ data_fun)
+    s2 = float(data_fun @ data_fun) / max(m - n, 1)
+    cov = _window_robust_covariance(data_jac, data_fun, problem.window_of_residual, s2)
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return {
+        name: (float((x[i] + step[i]) * problem.x_scale[i]), float(se[i] * abs(problem.x_scale[i])))
+        for i, name in enumerate(problem.names)
+    }
 
 
 Prior = tuple[float, float]
@@ -75,6 +95,59 @@ class _Window:
     channels: list[str]
     scales: dict[str, float]
     time_s: float  # since the start of the run it was cut from
+    replay: _Replay | None = None  # the replay's inputs, prepared once (None: `replay_rows` each time)
+
+
+@dataclass
+class _Replay:
+    """A window's replay on a regular time base, as `model.simulate.replay_rows` does it, with the inputs
+    laid out once: the fit replays every window hundreds of times, and laying them out each time (the
+    sub-step count of every sample interval, in Python) cost ten times the integration itself."""
+
+    state: dict[str, float | None]  # `Plant.reset` keywords: the window's first measured state
+    mode: InputMode
+    drive: np.ndarray  # per integration step; each sample's input held over its interval
+    load: np.ndarray
+    step_s: float
+    substeps: int  # integration steps per sample interval: rows are recorded every this many
+    measured: np.ndarray  # (samples, channels) the measured CHANNELS
+    scales: np.ndarray  # per channel
+    outputs: list[int]  # the kernel's OUT_ columns of the channels
+
+    @classmethod
+    def of(cls, run: Run, channels: list[str], scales: dict[str, float], dt_s: float) -> _Replay | None:
+        mode = replay_mode(run)
+        intervals = np.diff(run.t)
+        counts = np.maximum(1, np.ceil(intervals / dt_s - 1e-9)).astype(int)
+        steps = intervals / counts
+        if not (np.all(counts == counts[0]) and np.allclose(steps, steps[0], rtol=1e-9, atol=0.0)):
+            return None  # an irregular time base: `replay_rows` cuts each interval on its own
+        n = int(counts[0])
+        drive = run[INPUT_COLUMN[mode]]
+        load = run["tau_ext"] if "tau_ext" in run else np.zeros(len(run))
+        # One call: the row of the last sample is the state reached with the last input applied.
+        return cls(
+            state={
+                "theta_m": float(run["theta_m"][0]),
+                "omega_m": float(run["omega_m"][0]) if "omega_m" in run else 0.0,
+                "theta_l": float(run["theta_l"][0]) if "theta_l" in run else None,
+                "omega_l": float(run["omega_l"][0]) if "omega_l" in run else None,
+            },
+            mode=mode,
+            drive=np.ascontiguousarray(np.append(np.repeat(drive[:-1], n), drive[-1])),
+            load=np.ascontiguousarray(np.append(np.repeat(load[:-1], n), load[-1])),
+            step_s=float(steps[0]),
+            substeps=n,
+            measured=np.column_stack([run[c] for c in channels]),
+            scales=np.array([scales[c] for c in channels]),
+            outputs=[CHANNELS[c] for c in channels],
+        )
+
+    def residual(self, plant: Plant, time_s: float) -> np.ndarray:
+        """(replayed − measured)/scale, channel after channel."""
+        plant.reset(**self.state, time_s=time_s)  # type: ignore[arg-type]
+        rows = plant.advance(self.drive, self.mode, self.load, self.step_s, self.substeps)
+        return np.asarray(((rows[:, self.outputs] - self.measured) / self.scales).T.ravel())
 
 
 def shooting_windows(run: Run, window_s: float, quiet_rows: int = 6) -> list[Run]:
@@ -154,7 +227,14 @@ class TrajectoryProblem:
             pieces = shooting_windows(run, window_s)
             scales = _channel_scales(run, channels, pieces)
             self.windows += [
-                _Window(piece, channels, scales, float(piece.t[0] - run.t[0])) for piece in pieces
+                _Window(
+                    piece,
+                    channels,
+                    scales,
+                    float(piece.t[0] - run.t[0]),
+                    _Replay.of(piece, channels, scales, dt_s) if piece.input_column is not None else None,
+                )
+                for piece in pieces
             ]
         if not self.windows:
             raise UserInputError("no data long enough to fit on (windows of at least 3 samples)")
@@ -190,6 +270,9 @@ class TrajectoryProblem:
         plant = Plant(model)
         parts = []
         for w in self.windows:
+            if w.replay is not None:
+                parts.append(w.replay.residual(plant, w.time_s))
+                continue
             rows = replay_rows(plant, w.run, replay_mode(w.run), self.dt_s, time_s=w.time_s)
             for ch in w.channels:
                 parts.append((rows[:, CHANNELS[ch]] - w.run[ch]) / w.scales[ch])
@@ -267,7 +350,8 @@ def fit_problem(problem: TrajectoryProblem, max_evaluations: int = 60) -> Trajec
             f" weighed λ = {problem.prior_weight:.3g}"
         )
     after = _rms(problem.residuals(x_final)[: problem.size])
-    return TrajectoryFit(fitted, estimates, _rms(r0), after, len(r0), notes, problem.prior_weight)
+    data_only = data_only_estimates(problem, result.jac, result.fun, result.x) if problem.priors else {}
+    return TrajectoryFit(fitted, estimates, _rms(r0), after, len(r0), notes, problem.prior_weight, data_only)
 
 
 def prior_weight(problem: TrajectoryProblem, jac: np.ndarray, fun: np.ndarray) -> float:

@@ -26,6 +26,7 @@ from model.fit.inverse import InverseFit, inverse_model_fit
 from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel
 from model.run import Run
+from rig.identification.dynamics_stage import back_emf_fit
 
 LAW_FRICTION = {
     "article": ["s3", "k_v", "static_factor"],
@@ -116,23 +117,20 @@ def get_values_or_none(model: HarmonicDriveModel, names: list[str]) -> dict[str,
 
 
 def _motor_constants(runs: list[Run]) -> tuple[dict[str, tuple[float, float]], str] | None:
-    """R, K_b by u = R·i_a + K_b·ω_m over every sample of the voltage runs that also log i_a."""
-    rows = [run for run in runs if run.input_column == "u" and "i_a" in run]
-    if not rows:
+    """R, K_b by the motor stage's u = R·i_a + K_b·ω_m (`back_emf_fit`) over every sample of the voltage
+    runs that also log i_a."""
+    pieces = [
+        (r["u"], r["i_a"], r["theta_m"], float(np.median(np.diff(r.t))), np.ones(len(r), bool))
+        for r in runs
+        if r.input_column == "u" and "i_a" in r and len(r) >= 5
+    ]
+    if not pieces:
         return None
-    i_a = np.concatenate([r["i_a"] for r in rows])
-    omega = np.concatenate([np.gradient(r["theta_m"], r.t) for r in rows])
-    u = np.concatenate([r["u"] for r in rows])
-    design = np.column_stack([i_a, omega])
-    beta, *_ = np.linalg.lstsq(design, u, rcond=None)
-    resid = u - design @ beta
-    cov = np.linalg.pinv(design.T @ design) * float(resid @ resid) / max(len(u) - 2, 1)
-    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    if not (beta[0] > 0 and beta[1] > 0):
+    solved = back_emf_fit(pieces)
+    if not ("R" in solved.values and solved.values["R"] > 0 and solved.values["K_b"] > 0):
         return None
-    return {"R": (float(beta[0]), float(se[0])), "K_b": (float(beta[1]), float(se[1]))}, (
-        f"u = R·i_a + K_b·ω_m over {len(u)} samples of {len(rows)} run(s)"
-    )
+    values = {n: (solved.values[n], solved.std_errors[n]) for n in ("R", "K_b")}
+    return values, f"{solved.notes[-1]} of {len(pieces)} run(s)"
 
 
 def inverse_start(runs: list[Run], model: HarmonicDriveModel) -> InverseFit | None:
