@@ -172,8 +172,10 @@ def test_a_twin_killed_mid_run_quick_stops_the_host_and_aborts_the_run(tmp_path:
     started = threading.Event()
 
     def kill_twin_mid_run() -> None:
-        started.wait(30)
-        time.sleep(0.3)  # into the settle and the sweep
+        # Mid-run: once rows are recorded. (A fixed delay after the run's start could land in enable()
+        # on a busy machine, where a dead drive is a device fault of its own words, not `drive lost`.)
+        started.wait(60)
+        time.sleep(0.1)
         os.kill(child_pid, signal.SIGKILL)
 
     killer = threading.Thread(target=kill_twin_mid_run, daemon=True)
@@ -194,7 +196,7 @@ def test_a_twin_killed_mid_run_quick_stops_the_host_and_aborts_the_run(tmp_path:
             sweep,
             RunStore(tmp_path),
             rig=rig,
-            hooks=RunHooks(on_start=lambda _: started.set()),
+            hooks=RunHooks(on_block=lambda _id, _block: started.set()),
         )
     killer.join()
     assert outcome.status == RunStatus.ABORTED
