@@ -250,7 +250,7 @@ def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: Objec
 
     group = FactorGroup.read(od, read)
     per_rev = _agreed(
-        "position_units_per_rev", settings.position_units_per_rev, group.position_units_per_rev(), group
+        "position_units_per_rev", settings.position_units_per_rev, group.position_units_per_rev, group
     )
     if per_rev is None:  # the drive's units are its encoder's increments, and it has no resolution
         per_rev = from_drive("position_units_per_rev", 0x608F, 1, "encoder increments") / from_drive(
@@ -261,14 +261,14 @@ def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: Objec
     velocity_per_rad_s = _agreed(
         f"velocity_unit ({settings.velocity_unit})" if named else "velocity_units_per_rad_s",
         _velocity_setting(settings, position_per_rad),
-        group.velocity_units_per_rad_s(position_per_rad),
+        lambda: group.velocity_units_per_rad_s(position_per_rad),
         group,
     )
     velocity_per_rad_s = velocity_per_rad_s if velocity_per_rad_s is not None else position_per_rad
     acceleration_per_rad_s2 = _agreed(
         "acceleration_units_per_rad_s2",
         settings.acceleration_units_per_rad_s2,
-        group.acceleration_units_per_rad_s2(velocity_per_rad_s),
+        lambda: group.acceleration_units_per_rad_s2(velocity_per_rad_s),
         group,
     )
     rated_torque = settings.rated_torque_nm
@@ -292,8 +292,16 @@ UNITS_REL_TOL: Final = 1e-6
 value written to 7 significant digits (83443.0 for 524288 / 2π) is within it."""
 
 
-def _agreed(field: str, setting: float | None, drive: float | None, group: FactorGroup) -> float | None:
+def _agreed(
+    field: str, setting: float | None, drive_says: Callable[[], float | None], group: FactorGroup
+) -> float | None:
     """The setting (it wins), checked against what the drive's objects say where they say it."""
+    try:
+        drive = drive_says()
+    except UnitUnreadError as exc:
+        if setting is None:
+            raise CanopenConfigError(f"canopen.scaling.{field} is needed: {exc}") from None
+        return setting  # the drive's unit is one the driver cannot read: the setting says it
     if setting is None or drive is None:
         return setting if setting is not None else drive
     if not math.isclose(setting, drive, rel_tol=UNITS_REL_TOL):
@@ -347,6 +355,11 @@ FACTOR_OBJECTS: Final = {
     0x60AA: "SI unit acceleration",
 }
 """The objects that set a drive's units: a write to any of them changes what its numbers mean."""
+
+
+class UnitUnreadError(CanopenConfigError):
+    """The drive states a unit the driver cannot turn into radians (a length with no feed constant, a
+    code it does not know): a rig setting must say it."""
 
 
 @dataclass(frozen=True)
@@ -428,7 +441,8 @@ class FactorGroup:
             return Fraction(numerator, divisor)
 
         def si(index: int) -> SiUnit | None:
-            return SiUnit(index, read(index, 0) & 0xFFFFFFFF) if _has(od, index) else None
+            code = read(index, 0) & 0xFFFFFFFF if _has(od, index) else 0
+            return SiUnit(index, code) if code else None  # 0: no unit stated
 
         return cls(
             resolution=ratio(0x608F),
@@ -498,6 +512,10 @@ class FactorGroup:
             return per_rev
         if self.position_factor is not None:
             return _float(self.resolution / self.position_factor if self.resolution is not None else None)
+        if self.si_position is not None:
+            raise UnitUnreadError(
+                f"{self.si_position} names no angle and the drive has no feed constant (0x6092)"
+            )
         return _float(self.resolution)
 
     def velocity_units_per_rad_s(self, position_per_rad: float) -> float | None:
@@ -508,6 +526,10 @@ class FactorGroup:
             if self.resolution is None:
                 return None  # increments per turn unknown: 0x6094 cannot be turned into radians
             return float(self.resolution) / (2 * math.pi) / float(self.velocity_encoder_factor)
+        if implied is None and self.si_velocity is not None and not self._position_units_per_second():
+            raise UnitUnreadError(
+                f"{self.si_velocity} is not a unit the driver reads (an angle or increments per s, min or h)"
+            )
         if implied is None:
             return (
                 position_per_rad * float(self.velocity_factor) if self.velocity_factor is not None else None
@@ -533,6 +555,10 @@ class FactorGroup:
         (then they are velocity units per second)."""
         implied = self._si_rate(self.si_acceleration, {SI_SECONDS_SQUARED: ("s²", 1.0)})
         factor = self.acceleration_factor
+        if implied is None and self.si_acceleration is not None:
+            raise UnitUnreadError(
+                f"{self.si_acceleration} is not a unit the driver reads (an angle or increments per s²)"
+            )
         if implied is None:
             return velocity_per_rad_s * float(factor) if factor is not None else None
         if factor is not None and factor != 1 and not _close(factor, implied / velocity_per_rad_s):
@@ -541,6 +567,13 @@ class FactorGroup:
                 f" 0x6097 (acceleration factor) = {velocity_per_rad_s:.7g} × {_ratio_text(factor)}"
             )
         return implied
+
+    def _position_units_per_second(self) -> bool:
+        """0x60A9 names the position unit of 0x60A8 per second (a length, say): position units/s."""
+        velocity, position = self.si_velocity, self.si_position
+        if velocity is None or position is None or velocity.denominator != 0x03:
+            return False
+        return (velocity.numerator, velocity.exponent) == (position.numerator, position.exponent)
 
     def _si_rate(self, unit: SiUnit | None, times: dict[int, tuple[str, float]]) -> float | None:
         """Units per motor rad/s (or rad/s²) of an angle or increments per time unit; None for others."""

@@ -213,6 +213,17 @@ def test_a_setting_is_still_asked_for_where_the_drive_cannot_say() -> None:
     )
 
 
+def test_a_unit_the_driver_cannot_read_is_asked_of_the_rig_file_which_then_wins() -> None:
+    inches_per_s = {"x60A9": 0x00C10300}  # inch per second: a length, with no feed constant to turn it
+    with pytest.raises(CanopenConfigError) as refused:
+        scaling_of(RPM, inches_per_s)
+    assert str(refused.value) == (
+        "canopen.scaling.velocity_units_per_rad_s is needed: 0x60A9 (SI unit velocity) = 0x00C10300 is not"
+        " a unit the driver reads (an angle or increments per s, min or h)"
+    )
+    assert scaling_of(RPM, inches_per_s, velocity_units_per_rad_s=12.5).velocity_raw(2.0) == 25
+
+
 # --- limits in the new units ------------------------------------------------------------------------
 
 
