@@ -71,6 +71,10 @@ CHUNK_STEPS = 1 << 22
 MAX_SAMPLES = 100_000_000
 """Samples one simulation may write (28 h at 1 kHz, ~8 GB of ten float64 columns): a longer one is
 refused before its first step, not left to fill the disk."""
+SPECIALIZE_STEPS = 20_000_000
+"""Steps from which the loop is compiled for the model's structure (`kernel.specialized_profiles_loop`,
+~10 ns a step less on the seed preset): below, it would save < 0.2 s a run, while the first compile for
+a structure costs 3-7 s (once; numba's disk cache keeps it)."""
 MAX_STEPS = 10_000_000_000
 """Integration steps one simulation may take (28 h at dt 1e-5 s; ~10 min of the compiled loop at its
 16.6 M steps/s, docs/BENCHMARKS.md)."""
@@ -144,11 +148,10 @@ def simulate_stream(
         plant.reset(theta_m=theta_m0)
         out = np.empty((chunk // decim, k.N_OUT))
         code = MODES[mode]
+        loop = k.profiles_loop(plant.flags, specialized=n_steps >= SPECIALIZE_STEPS)
         for first in range(0, n_steps, chunk):
             n = min(chunk, n_steps - first)
-            rows = k.integrate_profiles(
-                plant.p, plant.flags, plant.x, code, drive_q, load_q, float(first), n, dt_s, decim, out
-            )
+            rows = loop(plant.p, plant.x, code, drive_q, load_q, float(first), n, dt_s, decim, out)
             yield {name: out[:rows, ch].copy() for name, ch in channels.items()}
 
     return SimulationStream(meta, list(channels), -(-n_steps // decim), blocks)
