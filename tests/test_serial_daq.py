@@ -563,6 +563,10 @@ def test_the_twin_measures_a_plant_it_steps_with_the_rig_files_sensors(seed: Har
         return 2.0 * np.sin(2 * math.pi * 2.0 * t)
 
     sensors = Sensors(encoder_counts_per_rev=131072, load_sensor_noise_rad=2e-6, seed=1)
+    # The plant's compiled loop loaded now, as a board is ready before it streams: its first call took
+    # 3.3 s with two CPU hogs on 2 cores (numba's cache, load 8), inside the 5 s wait for 200 samples
+    # (0 in after 5 s once, at load 10).
+    Plant(seed).advance(drive(np.zeros(1)), "voltage", dt_s=1e-4, decim=1)
     with (
         DaqTwin.from_sensors(SteppedPlantSource(Plant(seed), drive), sensors) as twin,
         SerialDaq(twin.url, timeout_s=5.0) as daq,

@@ -133,6 +133,7 @@ def test_the_raw_can_log_beside_the_run_has_one_exchange_per_sample(sweep: dict[
 
 def test_a_breach_through_the_twins_aborts_the_run_with_its_reason(tmp_path: Path) -> None:
     result = hdrig(tmp_path, "run", "speed-sweep", "--rig", str(VIRTUAL_CAN), "--set", RUNAWAY_LOAD, "--json")
+    assert result.stdout, result.stderr
     outcome = json.loads(result.stdout)
     assert result.returncode == 3, result.stderr
     assert outcome["status"] == "aborted"
