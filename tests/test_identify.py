@@ -34,8 +34,8 @@ TOLERANCE = {
     "s3": 0.01,  # steady windows, thousands of samples each: 0.02 % seen
     "k_v": 0.08,  # a slope over 5–200 rad/s that friction ripple blurs: 3 % seen
     "static_factor": 0.04,  # a handful of breakaway events, each bracketed within 2 %: 2 % seen
-    "R": 0.02,  # voltage pulses: u = R·i + K_b·ω, 0.4 % seen
-    "K_b": 0.02,
+    "R": 0.005,  # voltage pulses: u = R·i + K_b·(ω + δ·dω/dt), ≤ 0.05 % seen over 20 seeds (σ 0.04 %)
+    "K_b": 0.005,
     "f_cl": 0.02,  # load-side spring torque at steady speeds: 0.1 % seen
     "b_l": 0.2,  # a small viscous term (0.05 N·m·s/rad at the output): 8 % seen
 }
