@@ -147,7 +147,7 @@ def cmd_model_show(args: argparse.Namespace) -> int:
 def cmd_simulate(args: argparse.Namespace) -> int:
     # The process ends once the file is written, and what it builds is freed by reference counts (the
     # stream's blocks hold arrays): the cyclic collector's walks over the ~10^5 objects numba and scipy
-    # load are pure cost here, ~0.1 s of CPU at start-up and ~0.25 s in the exit's final collection
+    # load are pure cost here, ~0.07 s of CPU at start-up and ~0.25 s in the exit's final collection
     # (measured), more than a C loop's whole 200 s run. Off, and what exists frozen before exit.
     gc.disable()
     try:
