@@ -136,7 +136,9 @@ def test_boot_resets_the_node_and_starts_it(make_bench: BenchFactory) -> None:
     bench = make_bench(boot=False)
     bench.servo.boot()
     frames = bench.frames()
-    assert frames[0] == (NMT, bytes([0x81, NODE]))  # reset node
+    # The host's first frame is the reset. (The twin's own heartbeat, 0x1017, may come before it: on a
+    # busy machine the time between the twin's start and the boot spans its period.)
+    assert next(f for f in frames if f[0] != 0x700 + NODE) == (NMT, bytes([0x81, NODE]))  # reset node
     assert (0x700 + NODE, b"\x00") in frames  # its boot-up message
     assert frames.index((NMT, bytes([0x01, NODE]))) > frames.index((0x700 + NODE, b"\x00"))  # then start
     assert bench.twin.node.nmt.state == "OPERATIONAL"
@@ -169,10 +171,21 @@ def test_boot_limits_the_drive_to_the_rig_saturation(bench: Bench) -> None:
     assert node.sdo[0x6080].raw == round(600 * 60 / (2 * math.pi))
 
 
+HEARTBEAT_WINDOW_S = 1.0
+THREAD_HELD_S = 0.15
+"""The longest a thread of this process was held with both cores busy (a 1 ms sleep woke up to 140 ms
+late): the heartbeat thread catches up after it, but a window can end inside one."""
+
+
 def test_host_heartbeat_is_sent_every_50_ms(bench: Bench) -> None:
     bench.frames()
-    assert len(bench.frames(0x700 + HOST, wait_s=0.16)) >= 3
-    assert bench.frames(0x700 + HOST, wait_s=0.06)[0] == (0x700 + HOST, b"\x05")
+    beats = bench.frames(0x700 + HOST, wait_s=HEARTBEAT_WINDOW_S)
+    period_s = 0.05
+    # Over the window: every period's beat, less those a held thread owes at the window's end; at most
+    # one more than the window holds, plus the ones a hold before it had owed (25 ms beats give 40).
+    assert (HEARTBEAT_WINDOW_S - THREAD_HELD_S) / period_s <= len(beats)
+    assert len(beats) <= (HEARTBEAT_WINDOW_S + THREAD_HELD_S) / period_s + 1
+    assert set(beats) == {(0x700 + HOST, b"\x05")}  # OPERATIONAL
 
 
 # --- modes and the cycle --------------------------------------------------------------------------
