@@ -521,7 +521,10 @@ def test_read_until_returns_once_a_sample_taken_at_or_after_the_host_time_is_in(
         returned = time.monotonic()
         daq.stop()
     assert block.t_host_s[-1] >= until
-    assert returned - until < 0.1  # within a frame (10 ms) and the delivery, not a timeout
+    # Within a frame (10 ms) and its delivery, not the 1 s timeout. With two CPU hogs on 2 cores the
+    # pty's kernel worker held data up to 180 ms and a thread of this process was held up to 140 ms
+    # (measured; one wait can meet both): 10 + 180 + 140 ms.
+    assert returned - until < 0.33
 
 
 @needs_pty
