@@ -32,6 +32,10 @@ _MATLAB_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,62}")
 _MAT_META_VARIABLE = "meta"
 ROW_GROUP_ROWS = 1 << 16
 """Rows per Parquet row group in run files: a window or a column of a long run is read a group at a time."""
+USE_DICTIONARY = False
+"""Parquet dictionary encoding, off: measured sample columns rarely repeat a value, so the writer built a
+dictionary per column and row group only to drop it, at +26 MB of peak memory per 16 row groups written
+(what a recording's compaction does while it records) and ~5x the time; constant columns still compress."""
 
 
 class RunFileError(UserInputError):
@@ -91,7 +95,7 @@ def write_parquet(columns: dict[str, np.ndarray], meta: dict[str, Any], path: st
     kv = {key: json_text(value) for key, value in meta.items()}
     table = _table(columns).replace_schema_metadata(kv)
     with _atomic_write(path) as f:
-        pq.write_table(table, f, row_group_size=ROW_GROUP_ROWS)
+        pq.write_table(table, f, row_group_size=ROW_GROUP_ROWS, use_dictionary=USE_DICTIONARY)
     return path
 
 
@@ -264,7 +268,9 @@ class RunFileWriter:
             )
         else:
             kv = {key: json_text(value) for key, value in self.meta.items()}
-            self._parquet = pq.ParquetWriter(self._file, self._schema.with_metadata(kv))
+            self._parquet = pq.ParquetWriter(
+                self._file, self._schema.with_metadata(kv), use_dictionary=USE_DICTIONARY
+            )
 
     def write(self, block: dict[str, np.ndarray]) -> None:
         """Append rows: one array per column, equal lengths, `t` continuing to increase."""
