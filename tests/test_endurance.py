@@ -12,6 +12,7 @@ F_c(k) = L + (F_c(0) − L)·s_k.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -24,7 +25,7 @@ from rig.core import actions
 from rig.experiments.base import RigContext, context_from_run
 from rig.experiments.endurance import TRACK_POINTS_MAX, Endurance, EnduranceObserver, EnduranceParams
 from rig.interface import open_simulated_rig
-from rig.runner import make_params, run_experiment
+from rig.runner import analyze_stored, make_params, run_experiment
 from rig.store import RunStore
 
 K_WEAR = 2e-5  # per rad: +10 % in 5,000 rad, a few simulated minutes of the duty cycle
@@ -183,3 +184,29 @@ def test_the_tracker_follows_a_ramp_with_the_lag_of_its_memory() -> None:
     # duty's speed, and so what each sample says of F_c, swings over each 10 s period, and the estimate
     # wobbles with it. 5e-5 N·m is 0.07 % of the level, well below a checkpoint's uncertainty (~1e-3).
     assert noise < 5e-5
+
+
+def test_analyzing_a_stored_run_again_reads_only_its_checkpoints(
+    endurance: tuple[RunStore, str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store, run_id = endurance
+    before = store.checkpoints(run_id=run_id)
+    checkpoint_rows = sum(
+        int(s["cycles"]) for s in store.get(run_id)["meta"]["segments"] if str(s["label"]).startswith("c")
+    )
+    reads: list[tuple[list[str] | None, int]] = []
+    read = store.read
+
+    def counted(run: str, *args: Any, **kwargs: Any) -> Run:
+        got = read(run, *args, **kwargs)
+        reads.append((kwargs.get("segments"), len(got)))
+        return got
+
+    monkeypatch.setattr(store, "read", counted)
+    outcome = analyze_stored(store, run_id)
+    assert outcome.status == "complete"
+    # Every read named its segments (never the whole run, hours of duty cycle on a long one), and they
+    # held the checkpoints' rows only, each once.
+    assert reads and all(segments is not None for segments, _ in reads)
+    assert sum(rows for _, rows in reads) == checkpoint_rows
+    assert store.checkpoints(run_id=run_id) == before  # the same numbers as the first analysis

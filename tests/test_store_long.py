@@ -7,6 +7,7 @@ files are read back with pyarrow and scipy's `loadmat`, which this project did n
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ import scipy.io
 
 import rig.store as store_module
 from rig.runfile import ROW_GROUP_ROWS, read_run
-from rig.store import MERGE_FANIN, RunStore, UnknownColumnError
+from rig.store import MERGE_FANIN, PART_ROWS_MAX, RunStore, UnknownColumnError
 
 COLUMNS = ["t", "u", "theta_m"]
 
@@ -168,3 +169,58 @@ def test_export_of_a_selection_as_mat(store: RunStore, tmp_path: Path) -> None:
     np.testing.assert_array_equal(data["t"], t)
     np.testing.assert_array_equal(data["theta_m"], t**2)
     assert "u" not in data
+
+
+def compaction_threads(writer: store_module.RunWriter) -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == f"compact-{writer.run_id}"]
+
+
+def test_one_compaction_thread_serves_every_burst_of_merges(store: RunStore) -> None:
+    # Each thread brings its own malloc arena and pyarrow heap: one per burst, for hours, added up.
+    writer = record(store, MERGE_FANIN, 10, finish=False)
+    writer._compactor.join()
+    first = compaction_threads(writer)
+    assert len(first) == 1  # still there between bursts
+    for burst in range(1, 4):
+        for k in range(MERGE_FANIN):
+            writer.append(block((burst * MERGE_FANIN + k) * 10, 10))
+            writer.flush()
+        writer._compactor.join()
+        assert compaction_threads(writer) == first
+    assert files(writer) == [f"merged-{16 * b:06d}-{16 * b + 15:06d}.parquet" for b in range(4)]
+    writer.finish()
+    assert compaction_threads(writer) == []  # ends with the run
+    np.testing.assert_array_equal(store.read(writer.run_id).t, np.arange(64 * 10) / 1000.0)
+
+
+def test_a_flush_of_many_rows_writes_parts_of_about_one_row_group(store: RunStore) -> None:
+    writer = store.open_run("endurance", "sim", "seed", "abc", COLUMNS, {}, 3600.0)
+    rows, per_block = 3 * PART_ROWS_MAX + PART_ROWS_MAX // 2, 250
+    for first in range(0, rows, per_block):
+        writer.append(block(first, min(per_block, rows - first)))
+    writer.flush()
+    sizes = [pq.ParquetFile(writer.run_dir / name).metadata.num_rows for name in files(writer)]
+    assert len(sizes) == 4 and sum(sizes) == rows  # ceil(3.5) parts of about equal rows
+    assert max(sizes) <= PART_ROWS_MAX + per_block  # a part may pass it by part of one block
+    writer.finish()
+    np.testing.assert_array_equal(store.read(writer.run_id).t, np.arange(rows) / 1000.0)
+
+
+@pytest.mark.parametrize("max_pending", [1000, None])
+def test_append_flushes_itself_only_past_max_pending_rows(
+    store: RunStore, monkeypatch: pytest.MonkeyPatch, max_pending: int | None
+) -> None:
+    # No flush by the clock here, and no writer thread (it writes a run's first rows at once): the
+    # appender alone decides.
+    monkeypatch.setattr(store_module, "FIRST_FLUSH_S", 3600.0)
+    writer = store.open_run(
+        "endurance", "sim", "seed", "abc", COLUMNS, {}, 3600.0, max_pending_rows=max_pending
+    )
+    for k in range(3):
+        writer.append(block(k * 300, 300))
+    assert writer.samples == 0  # 900 rows wait: not past 1000
+    writer.append(block(900, 300))
+    # In virtual time (a bound) the appender wrote them itself; in real time (None) it never waits.
+    assert writer.samples == (1200 if max_pending is not None else 0)
+    writer.finish()
+    assert len(store.read(writer.run_id)) == 1200
