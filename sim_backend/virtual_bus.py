@@ -64,9 +64,12 @@ from sim_backend.twin_process import PlantLog, serve_twins, watchdog_grace_s
 
 TWINS: Final = ("in-process", "process")
 """The rig file's `twins:`: in this process (threads), or in a child process on a loopback TCP bus."""
-CHILD_START_TIMEOUT_S: Final = 30.0
+CHILD_START_TIMEOUT_S: Final = 240.0
 """The child imports numpy, numba and canopen and loads the drive's compiled loop: 0.6 s of CPU, 0.76 s
-in SCHED_FIFO, 3.5-10.8 s wall with two CPU hogs on 2 cores (load 11, measured); about 3 × that."""
+in SCHED_FIFO, 3.5-10.8 s wall with two CPU hogs on 2 cores (load 11, measured). After a change to a
+compiled kernel it compiles it first, as a twin in this process would: 78 s from an empty numba cache
+at load 10 (measured; 30 s ran out twice when another engineer's kernel change invalidated the
+cache). About 3 × the cold start: a child that is merely slow is not taken for a dead one."""
 
 
 class DaqTwinSettings(DaqStreamSettings):
@@ -166,6 +169,7 @@ class VirtualCanRig(HardwareRig):
         """The twins in a child process (`sim_backend.twin_process`), the drivers here on its bus."""
         self._load_sent: float | None = None
         self._stderr_lines: list[str] = []
+        self._child_grace_s = watchdog_grace_s(config) + 2.0  # before HardwareRig keeps the config
         log_dir = Path(tempfile.mkdtemp(prefix="hdrig-twins-"))
         try:
             self.child_plant_log = PlantLog(log_dir / "plant.log", create=True)
@@ -224,7 +228,8 @@ class VirtualCanRig(HardwareRig):
             assert self.child is not None
             self.child.kill()
             _out, err = self.child.communicate()
-            raise RuntimeError(f"the twins' process did not start: {err.strip() or 'no answer'}")
+            said = err.strip() or f"no answer in {CHILD_START_TIMEOUT_S:g} s"
+            raise RuntimeError(f"the twins' process did not start: {said}")
         return line[0]
 
     def _keep_stderr(self) -> None:
@@ -292,7 +297,7 @@ class VirtualCanRig(HardwareRig):
         self.daq_twin, self.twin, self.child = None, None, None
         try:
             if child is not None:
-                _end_child(child, watchdog_grace_s(self.config) + 2.0)
+                _end_child(child, self._child_grace_s)
         finally:
             plant_log, self.child_plant_log = self.child_plant_log, None
             if plant_log is not None:  # the rows took what they needed; the child has ended

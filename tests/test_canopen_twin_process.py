@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -30,6 +31,7 @@ from rig.interface import SAMPLE_COLUMNS, ControlMode, Segment
 from rig.runner import RunHooks, run_experiment
 from rig.status import RunStatus
 from rig.store import RunStore
+from sim_backend import virtual_bus
 from sim_backend.cia402_twin import TWIN_EDS
 from sim_backend.virtual_bus import VirtualCanRig
 
@@ -47,6 +49,18 @@ def process_rig(twins: str = "process") -> RigConfig:
     data = yaml.safe_load(VIRTUAL_CAN.read_text())
     data["twins"] = twins
     return RigConfig.model_validate(data)
+
+
+def test_a_child_that_does_not_answer_in_time_is_ended_in_one_clear_error(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(virtual_bus, "CHILD_START_TIMEOUT_S", 0.001)  # no child starts in 1 ms
+    made: list[str] = []
+    mkdtemp = tempfile.mkdtemp
+    monkeypatch.setattr(tempfile, "mkdtemp", lambda **kw: made.append(mkdtemp(**kw)) or made[-1])
+    with pytest.raises(RuntimeError, match=r"^the twins' process did not start: no answer in 0.001 s$"):
+        VirtualCanRig(process_rig())
+    assert len(made) == 1 and not Path(made[0]).exists()  # its plant log removed
 
 
 @pytest.mark.usefixtures("quiet_heap")

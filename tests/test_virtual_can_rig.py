@@ -187,7 +187,10 @@ def test_theta_l_is_the_daq_measurement_of_the_plant(paced: PacedRun) -> None:
     speed = np.max(np.abs(np.diff(truth))) / PERIOD_S
     motion = np.max(np.abs(truth[2:] - truth[:-2])) + speed * paced.clock_uncertainty_s + 5 * 2e-6
     np.testing.assert_array_equal(paced.plant["t"], paced.rows["t"])  # the same samples, row by row
-    assert np.percentile(error, 99) <= motion < np.percentile(stand_in_error, 99)
+    assert np.percentile(error, 99) <= motion
+    # And better than the rigid stand-in. (Not the bound: on a busy machine the clock's stated
+    # uncertainty took it past the stand-in's error once, at load 11, the error itself within both.)
+    assert np.percentile(error, 99) < np.percentile(stand_in_error, 99)
 
 
 def test_the_daq_stream_is_aligned_with_the_servo_by_host_time(paced: PacedRun) -> None:
