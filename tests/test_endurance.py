@@ -23,8 +23,14 @@ from model.run import Run
 from rig.config import load_rig_config
 from rig.core import actions
 from rig.experiments.base import RigContext, context_from_run
-from rig.experiments.endurance import TRACK_POINTS_MAX, Endurance, EnduranceObserver, EnduranceParams
-from rig.interface import open_simulated_rig
+from rig.experiments.endurance import (
+    TRACK_POINTS_MAX,
+    Endurance,
+    EnduranceObserver,
+    EnduranceParams,
+    checkpoint_program,
+)
+from rig.interface import Segment, open_simulated_rig
 from rig.runner import analyze_stored, make_params, run_experiment
 from rig.store import RunStore
 
@@ -210,3 +216,23 @@ def test_analyzing_a_stored_run_again_reads_only_its_checkpoints(
     assert reads and all(segments is not None for segments, _ in reads)
     assert sum(rows for _, rows in reads) == checkpoint_rows
     assert store.checkpoints(run_id=run_id) == before  # the same numbers as the first analysis
+
+
+def test_the_program_s_set_points_do_not_grow_with_its_hours() -> None:
+    ctx = RigContext(load_rig_config("sim-endurance"), 0.01, 0.0302, 0.0)
+    experiment = Endurance()
+
+    def distinct_bytes(hours: float) -> tuple[int, list[Segment]]:
+        program = experiment.program(EnduranceParams(duration_h=hours), ctx)
+        return sum({id(seg.setpoint): seg.setpoint.nbytes for seg in program}.values()), program
+
+    short, _ = distinct_bytes(1.0)
+    long, program = distinct_bytes(10.0)
+    assert long == short < 1 << 20  # one duty minute and one checkpoint's arrays, shared
+    # Checkpoint 7 of the long run is still the checkpoint program, under its own labels.
+    mine = [seg for seg in program if seg.label.startswith("c0007/")]
+    own = checkpoint_program(EnduranceParams(duration_h=10.0), ctx, 7)
+    assert [seg.label for seg in mine] == [seg.label for seg in own]
+    for a, b in zip(mine, own, strict=True):
+        assert a.mode == b.mode and a.tau_ext == b.tau_ext
+        np.testing.assert_array_equal(a.setpoint, b.setpoint)

@@ -22,7 +22,7 @@ hours of duty cycle between are never loaded), so a run of any length is analyze
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -107,15 +107,24 @@ def checkpoint_program(params: EnduranceParams, ctx: RigContext, index: int) -> 
     return segments
 
 
-def duty_program(params: EnduranceParams, ctx: RigContext, block: int, minutes: float) -> list[Segment]:
-    """`minutes` of duty motion as segments of whole periods; every full segment shares one array."""
+def duty_setpoints(params: EnduranceParams, ctx: RigContext) -> np.ndarray:
+    """The set-points of one full duty segment (whole periods, about DUTY_SEGMENT_S), read-only: every duty
+    segment of a run shares them, so the program's memory does not grow with its hours."""
     period = ctx.cycles(params.duty_period_s)
     phase = 2 * math.pi * np.arange(period) / period
     one = ctx.theta_m0 + 0.5 * params.duty_stroke_rad * (1.0 - np.cos(phase))
-    periods_total = max(1, round(minutes * 60.0 / params.duty_period_s))
-    per_segment = max(1, round(DUTY_SEGMENT_S / params.duty_period_s))
-    shared = np.tile(one, per_segment)
+    shared = np.tile(one, max(1, round(DUTY_SEGMENT_S / params.duty_period_s)))
     shared.flags.writeable = False
+    return shared
+
+
+def duty_program(
+    params: EnduranceParams, ctx: RigContext, block: int, minutes: float, shared: np.ndarray
+) -> list[Segment]:
+    """`minutes` of duty motion as segments of whole periods on `shared` (`duty_setpoints`)."""
+    period = ctx.cycles(params.duty_period_s)
+    periods_total = max(1, round(minutes * 60.0 / params.duty_period_s))
+    per_segment = shared.shape[0] // period
     segments: list[Segment] = []
     done = 0
     while done < periods_total:
@@ -336,11 +345,17 @@ class Endurance(Experiment):
             )
         count = checkpoints_due(params)
         total_min = params.duration_h * 60.0
-        program = checkpoint_program(params, ctx, 0)
+        first = checkpoint_program(params, ctx, 0)
+        for seg in first:
+            seg.setpoint.flags.writeable = False  # shared by every checkpoint, as the duty arrays are
+        program = list(first)
+        shared = duty_setpoints(params, ctx)
         for index in range(1, count):
             minutes = min(params.checkpoint_every_min, total_min - (index - 1) * params.checkpoint_every_min)
-            program += duty_program(params, ctx, index, minutes)
-            program += checkpoint_program(params, ctx, index)
+            program += duty_program(params, ctx, index, minutes, shared)
+            # The same set-points under the checkpoint's own labels: ~285 kB per checkpoint otherwise, a
+            # program whose memory grew with the run's hours.
+            program += [replace(seg, label=_label(index, seg.label.split("/", 1)[1])) for seg in first]
         return program
 
     def observer(self, params: EnduranceParams, ctx: RigContext, program: list[Segment]) -> EnduranceObserver:
