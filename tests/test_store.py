@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
@@ -16,9 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.io
+import sqlalchemy as sa
 
 import rig.store as store_module
 from model.run import RunFormatError
+from rig import catalog as tables
 from rig.runfile import read_run
 from rig.store import FIRST_FLUSH_S, RunStore, UnknownRunError, default_home
 
@@ -368,3 +371,30 @@ def test_sigkill_mid_run_keeps_all_but_the_last_second(tmp_path: Path) -> None:
     # last append was on disk.
     last_s = progress[-1][0]
     assert entry["samples"] >= max((n for s, n in progress if s <= last_s - 1.3), default=0)
+
+
+def test_metadata_updates_are_one_write_of_a_size_that_does_not_grow(
+    store: RunStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # An observer updates a recording run's metadata many times an hour; each is one encoding and one
+    # write of what the writer holds (no read of the catalog's row), and the same summary writes the same
+    # size whatever came before.
+    writer = store.open_run("endurance", "sim", "seed", "3f2a9c", COLUMNS, dict(META))
+    writer.update_meta({"segments": [{"label": f"s{k}", "start": k, "cycles": 1} for k in range(100)]})
+
+    def no_read(*args: object) -> None:
+        raise AssertionError("update_meta read the catalog's row")
+
+    monkeypatch.setattr(store, "_row", no_read)
+    sizes = []
+    for update in range(5):
+        writer.update_meta({"observed": {"track": [float(update)] * 50, "travel_rad": 10.0 + update}})
+        with store.catalog.read() as db:
+            text = db.execute(sa.select(tables.runs.c.meta).where(tables.runs.c.id == writer.run_id)).scalar()
+        sizes.append(len(text))
+        meta = json.loads(text)
+        assert meta["observed"]["travel_rad"] == 10.0 + update and len(meta["segments"]) == 100
+        assert meta["notes"] == "store test"  # what open_run wrote is kept
+    assert len(set(sizes)) == 1
+    monkeypatch.undo()
+    writer.finish()
