@@ -158,13 +158,19 @@ def drift_truth(points: list[dict[str, float]]) -> list[float]:
     return out
 
 
+def load_average() -> str:
+    """The machine's 1/5/15-minute load averages: figures from a shared machine are read beside them."""
+    return " / ".join(f"{x:.1f}" for x in os.getloadavg())
+
+
 def bench_endurance(work: Path) -> None:
     print("\n## Endurance on the simulated rig (sim-endurance, virtual time), sealed and exported\n")
+    print(f"load average at start: {load_average()}\n")
     print(
         "| duty | samples | record+seal+analyze wall s | peak MB | export parquet s / MB | csv s / MB"
-        " | mat s / MB | trend: worst |dev|/σ |"
+        " | mat s / MB | trend: worst |dev|/σ | load after |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for hours in ENDURANCE_HOURS:
         home = work / f"home-{hours:g}"
         env = {**os.environ, "HDRIG_HOME": str(home)}
@@ -197,7 +203,7 @@ def bench_endurance(work: Path) -> None:
         label = f"{hours * 3600:.0f} s" if hours < 1 else f"{hours:g} h"
         print(
             f"| {label} | {samples:,} | {wall:.1f} | {rss:.0f} | {' | '.join(exports)} |"
-            f" {max(abs(d) for d in deviations):.2f} ({len(deviations)} checkpoints) |"
+            f" {max(abs(d) for d in deviations):.2f} ({len(deviations)} checkpoints) | {load_average()} |"
         )
         shutil.rmtree(home)
 
