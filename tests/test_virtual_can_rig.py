@@ -27,7 +27,7 @@ import yaml
 from drivers.can_bus import open_bus
 from drivers.canopen_config import CanopenSettings
 from drivers.hardware_rig import RAW_CAN_LOG, BenchConstants, CycleLog, HardwareConfigError
-from hdrig_testing.can_bus import bus_settings_for_test
+from hdrig_testing.can_bus import TWIN_SYNC_TIMEOUT_S, bus_settings_for_test
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig, load_rig_config
@@ -278,6 +278,9 @@ def make_bench_rig(request: pytest.FixtureRequest, seed: HarmonicDriveModel) -> 
             "interface": bus.interface,
             "channel": bus.channel,
             "scaling": {"torque_constant_nm_per_a": seed.motor.K_m},
+            # The drive is a twin on this machine: its answers wait for the CPU (the file's 20 ms, for a
+            # drive of its own, ran out once at load 12; measured > 250 ms with two CPU hogs).
+            "sync_timeout_s": TWIN_SYNC_TIMEOUT_S,
         }
         config = RigConfig.model_validate(data)
         limits = config.limits.model_copy(update=drive_limits or {})
