@@ -122,6 +122,12 @@ def vendor_settings(eds: Path, **scaling: Any) -> CanopenSettings:
             "node_id": NODE,
             "interface": "virtual",
             "sync_timeout_s": TWIN_SYNC_TIMEOUT_S,
+            # The twin shares this machine: a cycle still waiting within its sync timeout is no hung
+            # loop, and a held heartbeat no dead host (virtual-can.yaml's 1000 ms). With the defaults
+            # (500 + 200 ms) a 2.2 s stall at load 12, answered in time, tripped the drive's watchdog.
+            "loop_timeout_ms": round(TWIN_SYNC_TIMEOUT_S * 1000),
+            "host_heartbeat_timeout_ms": 1000,
+            "drive_heartbeat_timeout_ms": 1000,
             "scaling": {**VENDOR_SCALING, **UNITS_THE_DRIVE_SAYS.get(eds.name, {}), **scaling},
         }
     )
