@@ -86,9 +86,10 @@ def make_params(experiment: Experiment, overrides: dict[str, Any]) -> Experiment
 
 
 def _virtual_time(rig: Rig) -> bool:
-    """Whether the rig's clock is its own (a simulated rig not paced to the wall clock): nothing is late
-    when its control loop waits."""
-    return rig.source == "sim" and rig.config.pace == "virtual"
+    """Whether the rig is the in-process simulation on a clock of its own (not paced to the wall clock):
+    nothing is late when its control loop waits. Not a rig on a bus, simulated devices or not: their
+    heartbeats and timeouts run on the wall clock."""
+    return rig.config.backend == "sim" and rig.config.pace == "virtual"
 
 
 def _settle(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> tuple[float, str | None]:
