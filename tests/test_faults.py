@@ -251,8 +251,10 @@ def test_a_stalled_control_loop_is_stopped_by_the_drives_watchdog(tmp_path: Path
 @pytest.mark.usefixtures("quiet_heap")
 def test_a_daq_that_drops_out_mid_run_stops_the_motor_and_aborts_the_run(tmp_path: Path) -> None:
     """The DAQ board goes silent mid-run (its twin closes its line): the next chunk's wait for θ_l ends
-    in a device fault, the drive is quick-stopped and the run ends aborted with what it recorded."""
-    config = load_rig_config("virtual-can").model_copy(update={"pace": "realtime"})
+    in a device fault, the drive is quick-stopped and the run ends aborted with what it recorded.
+    The twins run in this process here, so the test can close the DAQ twin's line itself."""
+    data = load_rig_config("virtual-can").model_dump() | {"pace": "realtime", "twins": "in-process"}
+    config = RigConfig.model_validate(data)
     store = RunStore(tmp_path / "home")
     rig = open_rig(config)
     assert isinstance(rig, VirtualCanRig)
