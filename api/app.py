@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
 
+import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Header, Query, Request, Response
 from fastapi import Path as PathParam
 from fastapi.openapi.utils import get_openapi
@@ -518,13 +519,15 @@ async def _event_stream(
 
 
 def _clean(value: Any) -> Any:
-    """JSON has no NaN or infinity: they travel as null."""
+    """JSON has no NaN or infinity (they travel as null) and no arrays (they travel as lists)."""
     if isinstance(value, float):
         return value if value == value and abs(value) != float("inf") else None
     if isinstance(value, dict):
         return {k: _clean(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return [_clean(v) for v in value]
+    if isinstance(value, np.ndarray):  # the worker's decimated samples
+        return _clean(value.tolist())
     return value
 
 

@@ -88,6 +88,9 @@ def test_a_run_job_completes_with_its_document_and_decimated_samples(store: RunS
         events = worker.events.since(0, run_id=run.id, limit=10**6)
     samples = [e for e in events if e.kind == EventKind.SAMPLES]
     assert samples and all(len(e.data["t"]) <= SAMPLE_POINTS_PER_EVENT for e in samples)
+    # Kept as small read-only copies (the log holds thousands on runs of hours), not views of the block.
+    assert all(isinstance(e.data["t"], np.ndarray) and not e.data["t"].flags.writeable for e in samples)
+    assert all(e.data["t"].base is None for e in samples)
     ids = [e.id for e in samples]
     assert ids == sorted(ids) and len(set(ids)) == len(ids)
     # Velocity segments carry the tracking error: set-point minus measured speed, row by row.

@@ -16,7 +16,8 @@ from typing import Any
 
 DEFAULT_CAPACITY = 5_000
 """Events kept: ~10 minutes of a run's decimated samples (8 a second), for a client resuming with its
-Last-Event-ID; a sample event holds ~5 kB of plain floats, so the log stays near 25 MB on runs of hours."""
+Last-Event-ID; a sample event holds seven small arrays (~2 kB), so the log stays under ~10 MB on runs of
+hours."""
 
 
 class EventKind(StrEnum):
