@@ -53,6 +53,9 @@ def rig_config(bus: BusSettings, sections: dict[str, Any] | None = None, **canop
         "channel": bus.channel,
         "pace": False,
         "sync_timeout_s": TWIN_SYNC_TIMEOUT_S,
+        # A cycle still waiting within its sync timeout is no hung loop (the default 500 ms: a 1.3 s
+        # stall at load 8, two hogs and a second test session, tripped the twin's watchdog).
+        "loop_timeout_ms": round(TWIN_SYNC_TIMEOUT_S * 1000),
         "scaling": {"torque_constant_nm_per_a": 0.0302},
         **canopen,
     }
