@@ -18,11 +18,12 @@ import pytest
 from scipy.stats import chi2
 
 from model.fit.parameters import get_values
+from model.fit.trajectory import fit_trajectories
 from model.params import HarmonicDriveModel
 from model.run import Run
 from rig.config import load_rig_config
 from rig.identification.dynamics_stage import motor_constants
-from rig.identification.identify import disagreement_scales
+from rig.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S, disagreement_scales
 from rig.runner import run_experiment
 from rig.store import RunStore
 from sim_backend.inprocess import SimRig
@@ -95,3 +96,41 @@ def test_scaled_sigma_covers_a_combination_with_one_biased_method():
     assert np.sqrt(np.mean(plain**2)) > 2.0  # the case the scaling is for
     assert np.sqrt(np.mean(scaled**2)) < 1.5
     assert np.mean(np.abs(scaled) <= 1.0) > 0.45
+
+
+@pytest.fixture(scope="module")
+def ideal_joint_runs(seed: HarmonicDriveModel, tmp_path_factory: pytest.TempPathFactory) -> list[Run]:
+    """The joint step's experiments (pulse, step, sine) on the sim rig with ideal sensors: no encoder
+    quantization, no current or output-sensor noise. The plant integrates at 1e-4 s, as the replay does."""
+    store = RunStore(tmp_path_factory.mktemp("ideal"))
+    config = load_rig_config("sim")
+    ideal = {"encoder_counts_per_rev": 0, "current_noise_a": 0.0, "load_sensor_noise_rad": 0.0}
+    config = config.model_copy(update={"sensors": config.sensors.model_copy(update=ideal)})
+    assert config.sim_dt_s == 1e-4
+    runs = []
+    for experiment in JOINT_EXPERIMENTS:
+        outcome = run_experiment(experiment, config, {}, store, rig=SimRig(config, model=seed))
+        assert outcome.status == "complete", outcome.reason
+        runs.append(store.read(outcome.run_id))
+    return runs
+
+
+@pytest.mark.parametrize("name", ["J_m", "J_l"])
+def test_inertias_from_trajectories_of_ideal_sensors_are_unbiased(
+    ideal_joint_runs: list[Run], seed: HarmonicDriveModel, name: str
+):
+    """With every other parameter true and nothing measured imperfectly, the trajectory fit's only
+    error is its own: the replay's step, and the windows' starting states. The replay integrates at the
+    plant's step, so what is left is how the windows start. Starting each window with the speed at its
+    first position's instant (not half a replay step earlier, where the semi-implicit Euler holds it)
+    gave J_l +0.18 % at a σ of 0.021 % (9σ) and J_m +0.13 % at 0.042 % (3.2σ); with the lag, −0.000 %
+    at 0.011 % and −0.015 % at 0.021 % (0.7σ). Bound: 3 of the fit's own σ (its σ here comes from the
+    smoothed starting speeds' error alone, the only imperfection left)."""
+    truth = get_values(seed, [name])[name]
+    fit = fit_trajectories(seed, ideal_joint_runs, ["J_m", "J_l"], window_s=JOINT_WINDOW_S)
+    estimate = next(p for p in fit.parameters if p.name == name)
+    assert estimate.identifiable and estimate.std_error is not None, estimate.note
+    error = estimate.estimate - truth
+    assert abs(error) <= 3 * estimate.std_error, (
+        f"{name}: {100 * error / truth:+.4f} % at σ {100 * estimate.std_error / truth:.4f} %"
+    )

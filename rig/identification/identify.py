@@ -197,7 +197,12 @@ def identify(
             notes.append("joint refinement polished on every window after it won on the held-out ones")
     verdicts = ", ".join(f"{label} {held[label]:.4g}" for label in candidates)
     notes.append(f"held-out windows (1 in {HOLDOUT_EVERY}): {verdicts}; kept the {kept} model")
-    if refined is not None and kept != "joint":
+    if refined is not None and kept != "joint" and "joint" not in fair:
+        notes.append(
+            f"the joint refinement is worse than the start on all windows ({cost['joint']:.4g} against"
+            f" {cost['start']:.4g}): {kept} values kept"
+        )
+    elif refined is not None and kept != "joint":
         notes.append(
             f"the joint refinement did not improve on the {kept} model on held-out windows"
             f" ({held['joint']:.4g} against {held[kept]:.4g}): {kept} values kept"
