@@ -185,7 +185,9 @@ def simulate(
     return Run(columns, stream.meta)
 
 
-def _substeps(interval_s: float, dt_s: float) -> int:
+def substeps(interval_s: float, dt_s: float) -> int:
+    """Integration steps in one sample interval: as many as keep each step at most `dt_s` (the replay's
+    rule, which the trajectory fit needs to know where the replay holds its speed)."""
     return max(1, math.ceil(interval_s / dt_s - 1e-9))
 
 
@@ -236,7 +238,7 @@ def replay_rows(
         hidden=hidden,
     )
     intervals = np.diff(t)
-    counts = np.array([_substeps(h, dt_s) for h in intervals])
+    counts = np.array([substeps(h, dt_s) for h in intervals])
     steps = intervals / counts
     rows = np.empty((len(t), k.N_OUT))
     if np.allclose(steps, steps[0], rtol=1e-9, atol=0.0) and np.all(counts == counts[0]):

@@ -35,7 +35,7 @@ from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel
 from model.plant import INPUT_COLUMN, InputMode, Plant
 from model.run import Run
-from model.simulate import _substeps, replay_mode, replay_rows
+from model.simulate import replay_mode, replay_rows, substeps
 
 CHANNELS = {"theta_m": k.OUT_THETA_M, "theta_l": k.OUT_THETA_L}
 """Positions only: a drive's speed is a filtered encoder difference, which the true speed of the model
@@ -211,7 +211,7 @@ def replay_step(run: Run, dt_s: float) -> float:
     """The integration step a replay of `run` takes: its typical sample interval cut into equal steps
     of at most `dt_s` (as `_Replay` and `model.simulate.replay_rows` cut each interval)."""
     interval = float(np.median(np.diff(run.t))) if len(run) > 1 else dt_s
-    return interval / _substeps(interval, dt_s)
+    return interval / substeps(interval, dt_s)
 
 
 def _channel_scales(run: Run, channels: list[str], windows: list[Run]) -> dict[str, float]:
