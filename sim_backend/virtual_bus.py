@@ -146,14 +146,20 @@ class VirtualCanRig(HardwareRig):
                 servo_daq.close()
             self._close_twins()
             raise
+        self._open_drivers(config, constants, servo, servo_daq, self._set_load)
+
+    def _open_drivers(
+        self,
+        config: RigConfig,
+        constants: BenchConstants,
+        servo: CanopenServo,
+        daq: SerialDaq,
+        load: Callable[[float], None],
+    ) -> None:
+        """The drivers composed into the rig, wherever the twins run; the twins closed if that fails."""
         try:
             super().__init__(
-                config,
-                constants=constants,
-                servo=servo,
-                daq=servo_daq,
-                load=self._set_load,
-                sample_clock=self._plant_time,
+                config, constants=constants, servo=servo, daq=daq, load=load, sample_clock=self._plant_time
             )
         except BaseException:
             self._close_twins()  # HardwareRig released the servo and the DAQ driver
@@ -205,18 +211,7 @@ class VirtualCanRig(HardwareRig):
                 servo_daq.close()
             self._close_twins()
             raise
-        try:
-            super().__init__(
-                config,
-                constants=constants,
-                servo=servo,
-                daq=servo_daq,
-                load=self._send_load,
-                sample_clock=self._plant_time,
-            )
-        except BaseException:
-            self._close_twins()
-            raise
+        self._open_drivers(config, constants, servo, servo_daq, self._send_load)
 
     def _first_line(self, stdout: IO[str]) -> str:
         """The child's JSON line, within CHILD_START_TIMEOUT_S; its stderr in the error otherwise."""
