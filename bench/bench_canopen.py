@@ -36,6 +36,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -98,16 +99,17 @@ def syncs_answered(rig: VirtualCanRig) -> int:
     return rig.child_plant_log.count
 
 
-def one_at_a_time() -> None:
+def one_at_a_time() -> IO[str]:
     """Wait for any other run of this benchmark on the machine to end: two real-time loops on one CPU
-    would each measure the other. The lock is the kernel's, so it goes with the process that held it."""
-    lock = open(Path(tempfile.gettempdir()) / "hdrig-bench-canopen.lock", "w")  # noqa: SIM115 (held to exit)
+    would each measure the other. Hold what it returns until the end: the lock is the kernel's, on that
+    open file, and goes with it (or with the process)."""
+    lock = open(Path(tempfile.gettempdir()) / "hdrig-bench-canopen.lock", "w")  # noqa: SIM115 (the caller holds it)
     try:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         print("another bench_canopen run holds the real-time CPU: waiting for it to end", flush=True)
         fcntl.flock(lock, fcntl.LOCK_EX)
-    globals()["_lock_file"] = lock
+    return lock
 
 
 def main() -> None:
@@ -136,7 +138,7 @@ def main() -> None:
         help="with realtime scheduling, the one CPU of the loop and the twins (default: the last); -1: any",
     )
     args = parser.parse_args()
-    one_at_a_time()
+    lock = one_at_a_time()  # noqa: F841 (held until main returns)
     scheduling = "ordinary scheduling"
     if args.scheduling == "realtime":
         scheduling = realtime_scheduling(cpu=None if args.cpu < 0 else args.cpu)
