@@ -1,0 +1,72 @@
+"""The trajectory fit replays data as the process that made them: the project's simulated plant exactly
+(its own semi-implicit Euler at its own step), anything else as a continuous plant.
+
+The continuous case is checked on the sim rig's plant stepped at 1 µs, a hundred times finer than the
+replay's 0.1 ms, with ideal sensors (no encoder quantization, no current or output-sensor noise): its
+own Euler error is 1 % of the replay's, so it stands for a continuous plant. Replayed at 0.1 ms as if
+it were the plant's own discretization, the inertias came out J_l −0.35 % (6σ of the fit's own σ,
+0.055 %) and J_m +0.13 % (1.9σ); this is what a rig's real data would see.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from model.fit.parameters import get_values
+from model.fit.trajectory import fit_trajectories, replay_scheme
+from model.params import HarmonicDriveModel
+from model.run import Run
+from rig.config import load_rig_config
+from rig.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S
+from rig.runner import run_experiment
+from rig.store import RunStore
+from sim_backend.inprocess import SimRig
+
+FINE_STEP_S = 1e-6
+REPLAY_STEP_S = 1e-4
+
+
+@pytest.fixture(scope="module")
+def near_continuous_runs(seed: HarmonicDriveModel, tmp_path_factory: pytest.TempPathFactory) -> list[Run]:
+    """Pulse, step and sine runs of the sim rig with ideal sensors, its plant stepped at 1 µs (~3 s)."""
+    store = RunStore(tmp_path_factory.mktemp("fine"))
+    config = load_rig_config("sim").model_copy(update={"sim_dt_s": FINE_STEP_S})
+    ideal = {"encoder_counts_per_rev": 0, "current_noise_a": 0.0, "load_sensor_noise_rad": 0.0}
+    config = config.model_copy(update={"sensors": config.sensors.model_copy(update=ideal)})
+    runs = []
+    for experiment in JOINT_EXPERIMENTS:
+        outcome = run_experiment(experiment, config, {}, store, rig=SimRig(config, model=seed))
+        assert outcome.status == "complete", outcome.reason
+        runs.append(store.read(outcome.run_id))
+    return runs
+
+
+def test_the_replay_follows_the_process_that_made_the_run(near_continuous_runs: list[Run]):
+    run = near_continuous_runs[0]
+    assert replay_scheme(run, REPLAY_STEP_S) == (REPLAY_STEP_S, True)  # 1 µs: near-continuous
+    at_plant_step = Run(run.columns, {**run.meta, "rig_config": {"sim_dt_s": 5e-5}})
+    assert replay_scheme(at_plant_step, REPLAY_STEP_S) == (5e-5, False)  # our plant: its own step
+    simulated = Run(run.columns, {"source": "sim", "dt_s": 1e-4})  # `model.simulate`'s metadata
+    assert replay_scheme(simulated, REPLAY_STEP_S) == (1e-4, False)
+    assert replay_scheme(Run(run.columns, {"source": "sim"}), REPLAY_STEP_S) == (1e-4, False)  # default
+    for meta in ({}, {"source": "hardware"}, {"source": "hdrig_testing.independent_plant"}):
+        assert replay_scheme(Run(run.columns, meta), REPLAY_STEP_S) == (REPLAY_STEP_S, True)
+
+
+@pytest.mark.parametrize("name", ["J_m", "J_l"])
+def test_inertias_from_a_continuous_plant_are_unbiased(
+    near_continuous_runs: list[Run], seed: HarmonicDriveModel, name: str
+):
+    """J_m and J_l fitted with every other parameter true. Measured: J_l −0.011 % at σ 0.0073 % (1.5σ),
+    J_m +0.021 % at σ 0.024 % (0.9σ); before, J_l −0.35 % at σ 0.055 %. Bound: 3 of the fit's own σ,
+    which here comes only from the windows' smoothed starting speeds (ideal sensors); the data have no
+    noise seed, so the outcome does not vary. The plant's own 1 µs Euler error (~0.004 % of J_l) is
+    inside the bound."""
+    truth = get_values(seed, [name])[name]
+    fit = fit_trajectories(seed, near_continuous_runs, ["J_m", "J_l"], JOINT_WINDOW_S, REPLAY_STEP_S)
+    estimate = next(p for p in fit.parameters if p.name == name)
+    assert estimate.identifiable and estimate.std_error is not None, estimate.note
+    error = estimate.estimate - truth
+    assert abs(error) <= 3 * estimate.std_error, (
+        f"{name}: {100 * error / truth:+.4f} % at σ {100 * estimate.std_error / truth:.4f} %"
+    )
