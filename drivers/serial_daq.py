@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike
 from drivers.daq_protocol import (
     ERR_BAD_ARGUMENT,
     MAX_TAG,
+    SAMPLE_DTYPE,
     DataFrame,
     DecoderStats,
     FrameDecoder,
@@ -418,7 +419,9 @@ class SerialDaq:
         t0_us = np.repeat(np.array([f.t0_us for f in frames], dtype=np.float64), counts)
         period_us = np.repeat(np.array([f.period_us for f in frames], dtype=np.float64), counts)
         t_device_s = (t0_us + within * period_us) * 1e-6
-        samples = np.concatenate([f.samples for f in frames])
+        # Joined as bytes: numpy's concatenate of structured arrays promotes their fields in Python,
+        # two thirds of this function's time (measured).
+        samples = np.frombuffer(b"".join([f.samples.tobytes() for f in frames]), dtype=SAMPLE_DTYPE)
         encoder = self._unwrap_encoder(samples["encoder"])
         calibration = self.calibration()
         return SampleBlock(
