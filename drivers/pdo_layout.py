@@ -7,13 +7,16 @@ ends.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 from canopen import objectdictionary
 from canopen.objectdictionary import ObjectDictionary, ODVariable
 
 PDO_MAX_BITS = 64
+_STRUCT_CODES = {8: "b", 16: "h", 32: "i", 64: "q"}  # signed; upper case unsigned
 
 
 @dataclass(frozen=True)
@@ -77,8 +80,24 @@ class PdoLayout:
         """Bytes on the wire."""
         return (self.bits + 7) // 8
 
+    @cached_property
+    def _packing(self) -> tuple[struct.Struct, struct.Struct, tuple[int, ...]] | None:
+        """When every entry is a whole 8/16/32/64-bit field, structs that do what `encode` and `decode`
+        do bit by bit, in C (both ends pack and unpack a PDO each cycle): the unsigned one for encoding
+        (values masked first, as bit packing does), the signed one for decoding, and the masks."""
+        if not all(e.bits in _STRUCT_CODES for e in self.entries):
+            return None
+        codes = [_STRUCT_CODES[e.bits] for e in self.entries]
+        signed = "".join(c if s else c.upper() for c, s in zip(codes, self.signed, strict=True))
+        unsigned = "".join(c.upper() for c in codes)
+        masks = tuple((1 << e.bits) - 1 for e in self.entries)
+        return struct.Struct("<" + unsigned), struct.Struct("<" + signed), masks
+
     def encode(self, values: Sequence[int]) -> bytes:
         """The PDO payload for one value per entry (raw, in the objects' units); saturates nothing."""
+        if (packing := self._packing) is not None:
+            unsigned, _, masks = packing
+            return unsigned.pack(*(int(v) & m for v, m in zip(values, masks, strict=True)))
         packed, offset = 0, 0
         for entry, value in zip(self.entries, values, strict=True):
             packed |= (int(value) & ((1 << entry.bits) - 1)) << offset
@@ -89,6 +108,8 @@ class PdoLayout:
         """One raw value per entry from a PDO payload; ValueError if the payload is too short."""
         if len(data) < self.length:
             raise ValueError(f"PDO payload of {len(data)} bytes, the mapping needs {self.length}")
+        if (packing := self._packing) is not None:
+            return packing[1].unpack_from(data)
         packed = int.from_bytes(bytes(data[: self.length]), "little")
         values, offset = [], 0
         for entry, signed in zip(self.entries, self.signed, strict=True):

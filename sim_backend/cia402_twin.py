@@ -113,6 +113,7 @@ measured with both cores busy (9.9 ms; max 114-140 ms), so a starved but running
 STANDSTILL_RAD_S: Final = 0.5  # a quick stop ends, PV reports zero speed, below this [rad/s]
 PV_REACHED_RAD_S: Final = 2.0  # PV target reached within this [rad/s]
 _INT16, _INT32 = (1 << 15) - 1, (1 << 31) - 1
+_MODES: Final = {int(m): m for m in OperationMode}  # a dict look-up costs less than the enum's call
 
 
 @dataclass
@@ -176,11 +177,14 @@ class Cia402Twin:
         self._lock = threading.RLock()
         self._closing = threading.Event()
         self._vars: dict[tuple[int, int], ODVariable] = {}
+        self._absent: set[tuple[int, int]] = set()  # objects the dictionary lacks
+        self._eds_values: dict[tuple[int, int], bytes] = {}  # of objects with no value stored
         self._rpdos: dict[int, _Pdo] = {}
         self._tpdos: list[_Pdo] = []
         self._pdos_stale = True
         self._offset_mapped = False  # a master drives 0x60B2 through an RPDO
         self._pending: dict[int, bytes] = {}
+        self._applying_sync_rpdos = False
         self._tpdo_sent: dict[int, bytes] = {}
         self._sync_count = 0
         self._controlword = 0
@@ -215,26 +219,42 @@ class Cia402Twin:
     # --- object dictionary access -----------------------------------------------------------------
 
     def _var(self, index: int, subindex: int = 0) -> ODVariable:
-        key = (index, subindex)
-        if key not in self._vars:
-            self._vars[key] = od_variable(self.node.object_dictionary, index, subindex)
-        return self._vars[key]
+        var = self._vars.get((index, subindex))
+        if var is None:  # not looked up yet, or not in the dictionary (which never changes): look again
+            var = self._vars[index, subindex] = od_variable(self.node.object_dictionary, index, subindex)
+        return var
 
     def _has(self, index: int, subindex: int = 0) -> bool:
+        key = (index, subindex)
+        if key in self._absent:
+            return False
         try:
             self._var(index, subindex)
         except KeyError:
+            self._absent.add(key)
             return False
         return True
 
     def _get(self, index: int, subindex: int = 0) -> int:
-        return int(self._var(index, subindex).decode_raw(self.node.get_data(index, subindex)))
+        # What LocalNode.get_data returns (it has no read callbacks here) without its look-ups, as each
+        # SYNC reads ~20 objects: the stored value, else the EDS's value or default, which never change.
+        var = self._var(index, subindex)  # KeyError when the dictionary lacks it
+        data = self.node.data_store.get(index, {}).get(subindex)
+        if data is None:
+            data = self._eds_values.get((index, subindex))
+            if data is None:
+                data = self.node.get_data(index, subindex)  # an SDO abort when the EDS has no value
+                self._eds_values[index, subindex] = data
+        return int(var.decode_raw(data))
 
     def _store(self, index: int, subindex: int, value: int) -> None:
         """Set an object as the drive itself does: no write callbacks, no access check."""
-        if self._has(index, subindex):
-            data = self._var(index, subindex).encode_raw(value)
-            self.node.data_store.setdefault(index, {})[subindex] = data
+        var = self._vars.get((index, subindex))
+        if var is None:
+            if not self._has(index, subindex):
+                return
+            var = self._var(index, subindex)
+        self.node.data_store.setdefault(index, {})[subindex] = var.encode_raw(value)
 
     def _get_or(self, index: int, default: int, subindex: int = 0) -> int:
         """The object's value, or `default` when the dictionary lacks it or it holds no value."""
@@ -330,7 +350,8 @@ class Cia402Twin:
         elif index == 0x6040:
             with self._lock:
                 self._apply_controlword(int(od.decode_raw(data)))
-                self._publish()  # the statusword answers at once, for SDO masters too
+                if not self._applying_sync_rpdos:  # those are published once, after the SYNC's step
+                    self._publish()  # the statusword answers at once, for SDO masters too
 
     def _check_mappable(self, value: int) -> None:
         """Refuse, as a drive does (SDO abort 0x06040041), to map what is not a mappable object."""
@@ -412,8 +433,12 @@ class Cia402Twin:
             if operational:
                 self._refresh_pdos()
                 pending, self._pending = self._pending, {}
-                for cob_id, payload in pending.items():
-                    self._apply_rpdo(self._rpdos[cob_id], payload)
+                self._applying_sync_rpdos = True
+                try:
+                    for cob_id, payload in pending.items():
+                        self._apply_rpdo(self._rpdos[cob_id], payload)
+                finally:
+                    self._applying_sync_rpdos = False
             self._sync_count += 1
             self._step(self._cycles_per_sync())
             self.measured.record(taken_s)
@@ -533,14 +558,13 @@ class Cia402Twin:
         return out
 
     def _remember(self, row: np.ndarray) -> None:
-        self.last_sample = {name: float(row[i]) for i, name in enumerate(SAMPLE_COLUMNS)}
+        self.last_sample = dict(zip(SAMPLE_COLUMNS, row.tolist(), strict=True))
 
     # --- the state machine ------------------------------------------------------------------------
 
     def _active_mode(self) -> OperationMode | None:
-        try:
-            mode = OperationMode(self._get_or(0x6060, 0))
-        except ValueError:
+        mode = _MODES.get(self._get_or(0x6060, 0))
+        if mode is None:
             return None
         usable = mode in TARGET_OBJECT and self._supported_bits & SUPPORTED_MODE_BIT[mode]
         return mode if usable else None
