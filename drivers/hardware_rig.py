@@ -99,10 +99,17 @@ DAQ_DRAIN_CYCLES: Final = 25
 """The samples decoded are taken every this many cycles, in the period's slack: making a block costs
 ~30 µs of CPU however few frames it holds, ~3.5 µs more per frame (measured on a 2-core EPYC VM), and
 on a shared CPU the loop's own work is what delays the drive's next answer."""
+DAQ_DRAIN_WITHIN_S: Final = 400e-6
+"""Paced, the samples are taken only in a cycle answered within this of its SYNC (else in a later one,
+or at the chunk's end): taking them cost 0.2-0.45 ms of wall time on a shared 2-core VM (measured), and
+two thirds of the cycles late for the 1 ms period were the ones that took them after a late answer."""
 DAQ_MERGE_PARTS: Final = 32
 """The samples taken are merged into one array each whenever this many pieces have gathered."""
-ALIGN_MARGIN_S: Final = 500e-6
-"""Paced, what a chunk's end keeps of the period, after the wait for the DAQ, to interpolate."""
+ALIGN_MARGIN_S: Final = 800e-6
+"""Paced, what a chunk's end keeps of the period, after the wait for the DAQ, to interpolate: the work
+after the wait took 0.33 ms of CPU at p50 and 0.63 ms at most on a shared 2-core VM (measured), on top of
+the drive's answer (0.3 ms at p50), so the wait is short; the rows it misses are extrapolated (1-2 per
+chunk end at 2 kHz, as many as with a 0.5 ms margin: the DAQ's frames come every 2 ms)."""
 EXTRAPOLATE_MAX_PERIODS: Final = 2
 """Paced, rows at most this many periods past the newest DAQ sample are extrapolated, plus the time
 between the DAQ's frames (the newest sample can be that old on arrival); further, the chunk's end
@@ -503,7 +510,8 @@ class HardwareRig(Rig):
         position_mode = choice is not None and choice.program == ControlMode.POSITION
         log = self.cycle_log
         code = NO_ABORT
-        done = 0
+        done = undrained = 0
+        paced = self.servo.settings.pace
         for k in range(n):
             if self._stop_requested.is_set():
                 break
@@ -538,15 +546,18 @@ class HardwareRig(Rig):
             done = k + 1
             position_error = target - theta_m if position_mode else 0.0
             code = envelope_breach(self._lim, u, i_a, omega_m, theta_m, position_error)
+            undrained += 1
             if (
                 code == NO_ABORT
                 and self.daq is not None
                 and self._streaming
                 and done < n
-                and done % DAQ_DRAIN_CYCLES == 0
+                and undrained >= DAQ_DRAIN_CYCLES
+                and (not paced or time.monotonic() - feedback.t_s <= DAQ_DRAIN_WITHIN_S)
             ):
                 # In the period's slack; the chunk's last cycle takes its samples in _fill_theta_l.
                 self._take_daq(self.daq.read_samples(timeout_s=0))
+                undrained = 0
             if log is not None:
                 log.t_sync_s.append(feedback.t_s)
                 log.latency_s.append(feedback.latency_s)
@@ -638,11 +649,12 @@ class HardwareRig(Rig):
             t_host = self.daq.host_time_s(t_device)
         self.daq_tally.extrapolated += int(np.count_nonzero(t_sync > t_host[-1]))
         rows[:, _COLUMN["theta_l"]] = _interpolate(t_sync, t_host, theta_l)
-        if log is not None:
-            log.daq_theta_m_rad.extend(_interpolate(t_sync, t_host, theta_m).tolist())
-            log.t_done_s[-1] = time.monotonic()  # the chunk's last cycle waited for the alignment
         keep = max(0, int(np.searchsorted(t_host, t_last, side="right")) - 1)
         self._daq_samples = [(t_device[keep:], theta_l[keep:], theta_m[keep:])]
+        if log is not None:
+            log.t_done_s[-1] = time.monotonic()  # the chunk's last cycle waited for the alignment
+            # The log's own check, not the loop's work: after the cycle is done.
+            log.daq_theta_m_rad.extend(_interpolate(t_sync, t_host, theta_m).tolist())
 
     def _merged_daq(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The samples kept so far as one array each (device time, θ_l, θ_m), kept so."""
