@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 from numba import njit
+from scipy.interpolate import CubicSpline
 from scipy.optimize import least_squares
 
 from model import kernel as k
@@ -152,8 +153,12 @@ def derivative(run: Run, column: str) -> np.ndarray:
 
 def deflection(run: Run, model: HarmonicDriveModel, offset_rad: float = 0.0) -> np.ndarray:
     """r·θ_m + A·sin(k·θ_m + φ) − θ_l − offset: the spring's deflection at the output [rad]."""
-    theta_m = run["theta_m"]
-    out = model.mechanics.r * theta_m - run["theta_l"] - offset_rad
+    return deflection_of(model, run["theta_m"], run["theta_l"]) - offset_rad
+
+
+def deflection_of(model: HarmonicDriveModel, theta_m: np.ndarray, theta_l: np.ndarray) -> np.ndarray:
+    """r·θ_m + A·sin(k·θ_m + φ) − θ_l at given positions (any shape) [rad]."""
+    out = model.mechanics.r * theta_m - theta_l
     if (ke := model.kinematic_error) is not None:
         out = out + ke.A * np.sin(ke.k * theta_m + ke.phi)
     return np.asarray(out)
@@ -168,19 +173,96 @@ def _spring_torques(p: np.ndarray, nonlinear: int, deflections: np.ndarray) -> n
 
 
 def spring_torque(model: HarmonicDriveModel, deflections: np.ndarray) -> np.ndarray:
-    """The transmission's spring torque K_s·δ, or the catalog's piecewise law (the kernel's own) [N·m]."""
+    """The transmission's spring torque K_s·δ, or the catalog's piecewise law (the kernel's own), for
+    deflections of any shape [N·m]."""
     p, flags = kernel_vectors(model)
-    return np.asarray(_spring_torques(p, int(flags[k.FL_NONLINEAR]), np.ascontiguousarray(deflections)))
+    flat = np.ascontiguousarray(deflections, dtype=np.float64).reshape(-1)
+    return np.asarray(_spring_torques(p, int(flags[k.FL_NONLINEAR]), flat)).reshape(np.shape(deflections))
+
+
+@njit(cache=True)
+def _load_moving_levels(p: np.ndarray, law: int, speeds: np.ndarray) -> np.ndarray:
+    out = np.empty_like(speeds)
+    for i in range(speeds.shape[0]):
+        out[i] = k.load_levels(p, law, abs(speeds[i]))[0]
+    return out
 
 
 def load_friction_steady(model: HarmonicDriveModel, omega_l: np.ndarray) -> np.ndarray:
-    """F_l of a load moving steadily at ω_l ≠ 0: sgn(ω_l)·level(|ω_l|) + b_l·ω_l (kernel levels) [N·m]."""
+    """F_l of a load moving at ω_l ≠ 0 (any shape): sgn(ω_l)·level(|ω_l|) + b_l·ω_l (kernel levels) [N·m]."""
+    omega_l = np.asarray(omega_l, dtype=np.float64)
     if model.load_friction is None:
         return np.zeros_like(omega_l)
     p, flags = kernel_vectors(model)
-    law = int(flags[k.FL_LOAD_LAW])
-    levels = np.array([k.load_levels(p, law, abs(w))[0] for w in np.atleast_1d(omega_l)])
-    return np.sign(omega_l) * levels + model.load_friction.b_l * omega_l
+    flat = np.ascontiguousarray(omega_l).reshape(-1)
+    levels = _load_moving_levels(p, int(flags[k.FL_LOAD_LAW]), flat).reshape(omega_l.shape)
+    return np.asarray(np.sign(omega_l) * levels + model.load_friction.b_l * omega_l)
+
+
+SPAN_PHASE_STEP_RAD = 0.5
+"""Largest advance of the kinematic error's phase k·θ_m between the instants at which `sample_spans`
+looks inside one sample's span: its ripple runs at k·ω_m/2π (1.6 kHz at 200 rad/s, above a 1 kHz rate)."""
+SPAN_INSTANTS_MIN, SPAN_INSTANTS_MAX = 8, 64
+"""Instants per span, at least: where a ringing load reverses inside a span, the sign of its friction
+changes there, and is placed to within 1/8 of a sample; at most: memory (rows × instants × 2 floats)."""
+TAPER_S = 0.02
+"""Each window's averages are taken with its edges ramped over this time (the first reaching back into
+the settle time before it): the window's momentum term then reads the load's mean speed over its ramps,
+not its speed at two instants, which a 2 µrad load sensor's noise made ±2 mN·m per window."""
+
+
+@dataclass
+class SampleSpans:
+    """Each sample's span of time, half-way to its neighbours, seen at equally spaced instants inside it.
+
+    A window of rows then covers one unbroken stretch of time: the mean over its rows of a span's mean
+    is the stretch's time average, and the mean of `accel_l` is exactly (ω_l at its end − ω_l at its
+    start)/its length, so the load's momentum balance holds over the same stretch in every term; and
+    as well for the same columns each averaged over the last rows before it (`tapered`).
+    """
+
+    deflection: np.ndarray  # (rows, instants): r·θ_m + A·sin(k·θ_m + φ) − θ_l [rad]
+    error_wave: np.ndarray  # (rows, instants): sin(k·θ_m + φ), zero without a kinematic error [–]
+    omega_l: np.ndarray  # (rows, instants): the load's speed [rad/s]
+    accel_l: np.ndarray  # (rows,): the load's speed change across the span / its length [rad/s²]
+
+
+def tapered(column: np.ndarray, rows: int) -> np.ndarray:
+    """Each row's value averaged with the rows − 1 before it (fewer at the start): a window's mean of
+    this is the mean of `column` weighted by a ramp up over its first rows and down over its last."""
+    sums = np.cumsum(np.concatenate([[0.0], column]))
+    end = np.arange(1, len(column) + 1)
+    count = np.minimum(end, rows)
+    return np.asarray((sums[end] - sums[end - count]) / count)
+
+
+def sample_spans(run: Run, model: HarmonicDriveModel) -> SampleSpans:
+    """`SampleSpans` of a run with θ_m and θ_l, through cubic splines of both (speeds: the splines' slopes).
+
+    Why not the samples themselves: after each reversal the load rings at its antiresonance (b_l alone
+    damps it, over seconds), so a window's mean spring torque carries J_l·Δω_l/T of up to a few hundred
+    mN·m, which cancels only if torque and speed change are taken over the very same stretch; the
+    kinematic error's ripple in the spring torque (K_s·A = 1 N·m on the seed model) aliases in the
+    samples at high motor speed; and where the ringing reverses the load, sgn(ω_l) averages differently
+    from sgn(mean ω_l). Ideal sensors: each window's balance at the true parameters then closes to
+    ≤ 0.4 mN·m (rms 0.11) instead of up to 8 mN·m (rms 1.6).
+    """
+    t = run.t
+    edges = np.concatenate([[1.5 * t[0] - 0.5 * t[1]], (t[:-1] + t[1:]) / 2, [1.5 * t[-1] - 0.5 * t[-2]]])
+    theta_m, theta_l = CubicSpline(t, run["theta_m"]), CubicSpline(t, run["theta_l"])
+    instants = SPAN_INSTANTS_MIN
+    if (ke := model.kinematic_error) is not None:
+        phase_step_rad = ke.k * float(np.max(np.abs(np.diff(run["theta_m"]))))
+        instants = min(max(instants, math.ceil(phase_step_rad / SPAN_PHASE_STEP_RAD)), SPAN_INSTANTS_MAX)
+    at = edges[:-1, None] + np.diff(edges)[:, None] * ((np.arange(instants) + 0.5) / instants)
+    motor_at = theta_m(at)
+    speed_at_edges = theta_l(edges, 1)
+    return SampleSpans(
+        deflection_of(model, motor_at, theta_l(at)),
+        np.zeros_like(motor_at) if ke is None else np.sin(ke.k * motor_at + ke.phi),
+        np.asarray(theta_l(at, 1)),
+        np.diff(speed_at_edges) / np.diff(edges),
+    )
 
 
 @dataclass
@@ -348,16 +430,23 @@ def load_friction_names(model: HarmonicDriveModel) -> list[str]:
 def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDriveModel) -> Solved:
     """K_s (or K1..K3 at fixed T1, T2), f_cl, b_l and the load sensor's zero from steady windows.
 
-    The load at steady speed: mean T_s = τ_ext + F_l(mean ω_l) + J_l·mean(dω_l/dt), with
-    T_s = spring(r·θ_m + A·sin(k·θ_m + φ) − θ_l − offset) averaged over the window's samples. Windows at
-    several loads separate the stiffness, both directions f_cl, several speeds b_l.
+    The load's momentum over a window's stretch of time: mean T_s = τ_ext + mean F_l + J_l·Δω_l/T, with
+    T_s = spring(r·θ_m + A·sin(k·θ_m + φ) − θ_l − offset) and F_l = sgn(ω_l)·f_cl + b_l·ω_l averaged
+    over the stretch inside every sample's span (`sample_spans`). Windows at several loads separate the
+    stiffness, both directions f_cl, several speeds b_l.
+
+    The kinematic error's amplitude A is fitted here too, and only reported as a metric: at low speed
+    the error's torque slows the motor through part of each cycle, and the window mean of K_s·A·sin(k·θ_m
+    + φ) is far from zero (±140 mN·m at ±5 rad/s on the seed model, against f_cl = 300 mN·m) and odd in
+    the direction, like f_cl. Held at the kinematic-error stage's A, that stage's error went into f_cl
+    (A −2.4 % gave f_cl −0.44 %, b_l +0.8 %); fitted, it costs f_cl a wider σ instead.
     """
     out = Solved()
-    used = [(part, part.steady) for part in parts if "theta_l" in part.run and np.any(part.steady)]
+    used = [part for part in parts if "theta_l" in part.run and np.any(part.steady)]
     if model.rigid or not used:
         out.notes.append("skipped: no steady sweep with a load angle on a compliant model")
         return out
-    loads = {round(float(np.mean(part.mean(part.run["tau_ext"]))), 6) for part, _ in used}
+    loads = {round(float(np.mean(part.mean(part.run["tau_ext"]))), 6) for part in used}
     if len(loads) < 2:
         # One load: the deflection is F_l/K_s, and only the windows' momentum (through the held J_l)
         # would part K_s from the friction; that is no measurement of either.
@@ -376,43 +465,65 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
                 out.undetermined[name] = (
                     f"loads up to {reach:g} N·m do not pass its breakpoint {breakpoint:g} N·m"
                 )
-    J_l = model.mechanics.J_l
-    pieces = []
-    for part, steady in used:
-        # F_l at the window's measured mean load speed, not the set one: the kinematic error leaves the
-        # window's mean ω_l 1–3 % off r·ω_set, and b_l came out +1.8 % from it (ideal sensors; now +0.9 %).
-        target = part.mean(part.run["tau_ext"]) + J_l * part.mean(derivative(part.run, "omega_l"))
-        pieces.append((part, steady, target, deflection(part.run, model), part.mean(part.run["omega_l"])))
+    # Fitted with them, reported as metrics only (see above): the load sensor's zero, J_l, A.
+    ke = model.kinematic_error
+    held = {"theta_l_offset": 0.0, "J_l": model.mechanics.J_l} | ({"A": ke.A} if ke is not None else {})
+    held_scales = {"theta_l_offset": 1e-5, "J_l": model.mechanics.J_l} | ({"A": ke.A} if ke else {})
+    # By run (a load-variation run holds one part per load): its spans, and rows in a window's ramp.
+    spans = {id(part.run): sample_spans(part.run, model) for part in used}
+    ramps = {id(part.run): max(1, round(TAPER_S * part.run.sample_rate_hz)) for part in used}
+
+    def window_means(part: SweepPart, column: np.ndarray) -> np.ndarray:
+        return part.mean(tapered(column, ramps[id(part.run)]))
+
+    loads_nm = [window_means(part, part.run["tau_ext"]) for part in used]
+    accels = [window_means(part, spans[id(part.run)].accel_l) for part in used]
     scale_nm = 1e-3  # residuals in mN·m: the unit of the fit's conditioning, not of its result
 
     f_sl = model.load_friction.f_sl if model.load_friction is not None else None
 
     def residual(x: np.ndarray) -> np.ndarray:
-        values = dict(zip(names, x[:-1], strict=True))
+        values = dict(zip(names, x[: len(names)], strict=True))
         if "f_cl" in values and f_sl is not None:
             values["f_sl"] = max(f_sl, values["f_cl"])  # the schema keeps static ≥ Coulomb
         trial = with_values(model, values)
-        parts_out = []
-        for part, steady, target, bent, omega_l in pieces:
-            torque = part.mean(spring_torque(trial, bent - x[-1]))
-            load = load_friction_steady(trial, omega_l)
-            parts_out.append(((torque - target - load) / scale_nm)[steady])
-        return np.concatenate(parts_out)
+        extra = dict(zip(held, x[len(names) :], strict=True))
+        error_change = extra["A"] - ke.A if ke is not None else 0.0
+        balance = {
+            run: spring_torque(
+                trial, span.deflection + error_change * span.error_wave - extra["theta_l_offset"]
+            ).mean(axis=1)
+            - load_friction_steady(trial, span.omega_l).mean(axis=1)
+            for run, span in spans.items()
+        }
+        return np.concatenate(
+            [
+                ((window_means(part, balance[id(part.run)]) - tau - extra["J_l"] * accel) / scale_nm)[
+                    part.steady
+                ]
+                for part, tau, accel in zip(used, loads_nm, accels, strict=True)
+            ]
+        )
 
     start = list(get_values(model, names).values())
     solved = nonlinear_fit(
         residual,
-        [*names, "theta_l_offset"],
-        [*start, 0.0],
-        [*(abs(v) or 1.0 for v in start), 1e-5],
-        lower=[1e-9 if name.startswith("K") else 0.0 for name in names] + [-np.inf],
+        [*names, *held],
+        [*start, *held.values()],
+        [*(abs(v) or 1.0 for v in start), *held_scales.values()],
+        lower=[1e-9 if name.startswith("K") else 0.0 for name in names] + [-np.inf, 0.0, 0.0][: len(held)],
     )
-    windows = sum(int(np.count_nonzero(s)) for _, s in used)
-    solved.metrics["theta_l_offset"] = solved.values.pop("theta_l_offset")
-    solved.std_errors.pop("theta_l_offset")
+    windows = sum(int(np.count_nonzero(part.steady)) for part in used)
+    for name in held:
+        solved.metrics[name] = solved.values.pop(name)
+        solved.metrics[name + "_std"] = solved.std_errors.pop(name)
+    seen = ", ".join(
+        f"{name} = {solved.metrics[name]:.4g} ± {solved.metrics[name + '_std']:.2g}" for name in held
+    )
     solved.notes.append(
-        f"mean spring torque = τ_ext + F_l + J_l·dω_l/dt over {windows} steady windows"
-        f" (J_l = {J_l:.4g} kg·m²); load sensor zero {solved.metrics['theta_l_offset']:.3g} rad"
+        f"mean spring torque = τ_ext + F_l + J_l·Δω_l/T over {windows} steady windows, each sample's span"
+        f" seen at instants between samples, the windows' edges ramped over {TAPER_S * 1e3:g} ms;"
+        f" fitted with them, not used: {seen}"
     )
     return solved
 
@@ -555,14 +666,22 @@ def load_response(model: HarmonicDriveModel, omega_rad_s: np.ndarray) -> np.ndar
     return np.asarray(spring / (spring + jw * b_l - J_l * omega_rad_s**2))
 
 
+KINEMATIC_HARMONICS = 3
+"""Time harmonics n = −3..3 of the error's wave over a pass, each taken through the load at its own
+frequency: the motor's speed dips where the error's torque opposes it, so e^(jk·θ_m) is no pure tone."""
+
+
 def kinematic_error(passes: Sequence[Run], model: HarmonicDriveModel) -> Solved:
     """A, φ from θ_l − r·θ_m over constant-speed passes: the kinematic error seen through the load.
 
     At motor speed ω the spring's motor end moves by r·θ_m + A·sin(k·θ_m + φ), rippling at Ω = k·ω (the
-    error, and the motor's own ripple r·θ̃_m that the error's torque causes); the load follows that by
-    G(jΩ), so θ_l − r·θ_m = c + Im(A·e^(jφ)·G·e^(jk·θ_m)) + Im((G − 1)·r·m·e^(jk·θ_m)), m the motor's
-    measured ripple at Ω. Linear in A·e^(jφ): least squares, an offset per pass direction, with K_s, J_l,
-    D_s, b_l from the earlier stages.
+    error, and the motor's own ripple r·θ̃_m that the error's torque causes); the load follows each time
+    harmonic e^(jnΩt) of it by G(jnΩ), so θ_l − r·θ_m = c + Im(A·e^(jφ)·Σ_n w_n·G(jnΩ)·e^(jnΩt)) +
+    r·Σ_n (G(jnΩ) − 1)·m_n·e^(jnΩt), with w_n and m_n the harmonics of the measured e^(jk·θ_m) and θ̃_m.
+    Linear in A·e^(jφ): least squares, an offset per pass direction, with K_s, J_l, D_s, b_l from the
+    earlier stages. (Taking e^(jk·θ_m) through G(jΩ) whole put A 1.7 % low on the seed's 5 rad/s passes:
+    there the error's torque slows the motor through part of each cycle, and w_{±2}, w_{−1} are not
+    small; ideal sensors now +0.04 % at σ 0.13 %.)
     """
     out = Solved()
     ke = model.kinematic_error
@@ -570,27 +689,29 @@ def kinematic_error(passes: Sequence[Run], model: HarmonicDriveModel) -> Solved:
         out.notes.append("skipped: no kinematic_error in the model")
         return out
     r = model.mechanics.r
+    order = np.arange(-KINEMATIC_HARMONICS, KINEMATIC_HARMONICS + 1)
     columns, targets = [], []
     for run in passes:
         if "theta_l" not in run:
             continue
         ctx = context(run)
         settle_s = float(run.meta["params"]["settle_s"])
-        speed = float(run.meta["params"]["speed_rad_s"])
         theta, direction, _ = steady_samples(run, ctx, settle_s)
         _, _, theta_l = steady_samples(as_torque(run, ctx, run["theta_l"]), ctx, settle_s)
         _, _, t_s = steady_samples(as_torque(run, ctx, run.t), ctx, settle_s)
-        wave = np.exp(1j * ke.k * theta)
-        response = load_response(model, ke.k * speed * direction)
         for sign in (1.0, -1.0):  # Frisch–Waugh: an offset per direction, taken out by centring
             pick = direction == sign
             if not np.any(pick):
                 continue
-            ripple = theta[pick] - np.polyval(np.polyfit(t_s[pick], theta[pick], 1), t_s[pick])
-            at_k = np.column_stack([wave[pick].imag, wave[pick].real])
-            beta, _ = linear_fit(at_k - at_k.mean(axis=0), ripple - ripple.mean())
-            motor = np.imag((response[pick] - 1) * r * complex(beta[0], beta[1]) * wave[pick])
-            basis = response[pick] * wave[pick]
+            speed, start = np.polyfit(t_s[pick], theta[pick], 1)
+            mean_motion = speed * t_s[pick] + start
+            waves = np.exp(1j * np.outer(ke.k * mean_motion, order))  # e^(jnΩt), phase-locked to θ_m
+            response = load_response(model, order * ke.k * speed)
+            error_wave = np.linalg.lstsq(waves, np.exp(1j * ke.k * theta[pick]), rcond=None)[0]
+            ripple = (theta[pick] - mean_motion).astype(np.complex128)
+            motor_wave = np.linalg.lstsq(waves, ripple, rcond=None)[0]
+            basis = waves @ (error_wave * response)
+            motor = r * (waves @ (motor_wave * (response - 1))).real
             design = np.column_stack([basis.imag, basis.real])
             y = theta_l[pick] - r * theta[pick] - motor
             columns.append(design - design.mean(axis=0))
@@ -606,6 +727,6 @@ def kinematic_error(passes: Sequence[Run], model: HarmonicDriveModel) -> Solved:
     out.put("phi", math.atan2(beta[1], beta[0]), math.sqrt(float(tangential @ cov @ tangential)) / amplitude)
     out.notes.append(
         f"θ_l − r·θ_m at k = {ke.k:g} per motor turn over {sum(map(len, targets))} samples,"
-        " through the load's response G(jkω)"
+        f" harmonics n = ±{KINEMATIC_HARMONICS} of the error's wave each through the load's response G(jnΩ)"
     )
     return out
