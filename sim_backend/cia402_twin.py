@@ -177,7 +177,7 @@ class Cia402Twin:
         self._lock = threading.RLock()
         self._closing = threading.Event()
         self._vars: dict[tuple[int, int], ODVariable] = {}
-        self._absent: set[tuple[int, int]] = set()  # objects the dictionary lacks
+        self._absent: dict[tuple[int, int], tuple[object, ...]] = {}  # lacking: the KeyError's args
         self._eds_values: dict[tuple[int, int], bytes] = {}  # of objects with no value stored
         self._rpdos: dict[int, _Pdo] = {}
         self._tpdos: list[_Pdo] = []
@@ -219,19 +219,22 @@ class Cia402Twin:
     # --- object dictionary access -----------------------------------------------------------------
 
     def _var(self, index: int, subindex: int = 0) -> ODVariable:
-        var = self._vars.get((index, subindex))
-        if var is None:  # not looked up yet, or not in the dictionary (which never changes): look again
-            var = self._vars[index, subindex] = od_variable(self.node.object_dictionary, index, subindex)
+        key = (index, subindex)
+        var = self._vars.get(key)
+        if var is None:  # looked up once: the dictionary never changes
+            if key in self._absent:
+                raise KeyError(*self._absent[key])  # the same error, without the look-up (read each SYNC)
+            try:
+                var = self._vars[key] = od_variable(self.node.object_dictionary, index, subindex)
+            except KeyError as exc:
+                self._absent[key] = exc.args
+                raise
         return var
 
     def _has(self, index: int, subindex: int = 0) -> bool:
-        key = (index, subindex)
-        if key in self._absent:
-            return False
         try:
             self._var(index, subindex)
         except KeyError:
-            self._absent.add(key)
             return False
         return True
 
