@@ -512,6 +512,7 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
 def cmd_twin(args: argparse.Namespace) -> int:
     from rig.config import load_rig_config
     from rig.interface import backend_class
+    from rig.realtime import freeze_built, quiet_heap
 
     config = load_rig_config(args.rig)
     # The backend serves its own twins; rig knows no backend, so it asks the class named by the file.
@@ -519,7 +520,13 @@ def cmd_twin(args: argparse.Namespace) -> int:
     if serve is None:
         raise UserInputError(f"rig {config.name!r}: backend {config.backend!r} has no twins to serve")
     _say(f"hdrig: twins of rig {config.name} on 127.0.0.1; Ctrl-C stops them")
-    serve(config, args.port, lambda line: print(line, flush=True))
+
+    def announce(line: str) -> None:
+        freeze_built()  # the twins are built: out of the collector's walks before the first SYNC
+        print(line, flush=True)
+
+    with quiet_heap():  # this process is the twins' own: a full collection would hold their answers back
+        serve(config, args.port, announce)
     return 0
 
 

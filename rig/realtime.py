@@ -44,6 +44,20 @@ def quiet_heap() -> Iterator[None]:
                 gc.unfreeze()
 
 
+def freeze_built() -> None:
+    """Inside `quiet_heap()`: collect, then keep the collector off what was built since it was entered.
+
+    For a process that enters `quiet_heap()` first and builds what serves its loop inside it, such as
+    the twins' process: a twin built from an EDS is ~63,000 tracked objects, and one full collection of
+    them took 26 ms (measured), 26 SYNCs unanswered. `quiet_heap()`'s last exit unfreezes them too.
+    """
+    with _lock:
+        if not _holders[0]:
+            raise RuntimeError("freeze_built() outside quiet_heap(): nothing would unfreeze what it froze")
+        gc.collect()
+        gc.freeze()
+
+
 def realtime_scheduling(priority: int = 10, cpu: int | None = None) -> str:
     """Put the calling thread in the FIFO real-time class at `priority`, if the OS allows, and on `cpu`
     alone if given; say what it got.

@@ -39,7 +39,7 @@ from drivers.tcp_can import CanHub
 from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
 from rig.interface import SAMPLE_COLUMNS
-from rig.realtime import quiet_heap
+from rig.realtime import freeze_built, quiet_heap
 from sim_backend.cia402_twin import Cia402Twin
 from sim_backend.daq_twin import DaqTwin
 
@@ -163,6 +163,7 @@ def _child() -> None:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
 
     def announce(line: str) -> None:
+        freeze_built()  # the twins are built: out of the collector's walks before the first SYNC
         print(line, flush=True)
 
     with quiet_heap():  # this process is the twins' own: a full collection would hold their answers back
