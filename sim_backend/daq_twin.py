@@ -59,6 +59,18 @@ _Times = TypeVar("_Times", float, np.ndarray)
 _SAMPLE = struct.Struct("<iiB")  # SAMPLE_DTYPE's bytes: encoder, cap, status
 
 
+def _yield_to_the_loop() -> None:
+    """In a real-time process (`rig.realtime.realtime_scheduling`: SCHED_FIFO, inherited by every thread),
+    put the calling thread one priority below the others. On a bench the DAQ board is a machine of its
+    own; here, at the same priority on the one CPU, its thread, woken first, ran its frame (~100 µs with
+    the socket write) before the drive twin's answer to a SYNC or the host's handling of it."""
+    if not hasattr(os, "sched_getscheduler") or os.sched_getscheduler(0) != os.SCHED_FIFO:
+        return
+    priority = os.sched_getparam(0).sched_priority
+    if priority > 1:  # lowering one's own priority needs no permission
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority - 1))
+
+
 class PlantStateSource:
     """The state of a plant stepped by someone else (the CANopen twin), as it was at given host times.
 
@@ -355,6 +367,7 @@ class DaqTwin:
 
     def _run(self) -> None:
         try:
+            _yield_to_the_loop()
             while not self._closing.is_set():
                 wait = POLL_S
                 if self.streaming:
