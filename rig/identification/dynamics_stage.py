@@ -200,31 +200,57 @@ def load_friction_steady(model: HarmonicDriveModel, omega_l: np.ndarray) -> np.n
 
 
 SPAN_PHASE_STEP_RAD = 0.5
-"""Largest advance of the kinematic error's phase k·θ_m between the instants at which `sample_spans`
+"""Largest advance of the kinematic error's phase k·θ_m between the instants at which `span_instants`
 looks inside one sample's span: its ripple runs at k·ω_m/2π (1.6 kHz at 200 rad/s, above a 1 kHz rate)."""
 SPAN_INSTANTS_MIN, SPAN_INSTANTS_MAX = 8, 64
 """Instants per span, at least: where a ringing load reverses inside a span, the sign of its friction
-changes there, and is placed to within 1/8 of a sample; at most: memory (rows × instants × 2 floats)."""
+changes there, and is placed to within 1/8 of a sample; at most: memory (rows × instants floats)."""
 TAPER_S = 0.02
 """Each window's averages are taken with its edges ramped over this time (the first reaching back into
-the settle time before it): the window's momentum term then reads the load's mean speed over its ramps,
-not its speed at two instants, which a 2 µrad load sensor's noise made ±2 mN·m per window."""
+the settle time before it): the window's momentum term then reads the mean speed over its ramps, not
+the speed at two instants, which a 2 µrad load sensor's noise made ±2 mN·m per window."""
+
+
+def span_instants(run: Run, model: HarmonicDriveModel) -> tuple[np.ndarray, np.ndarray]:
+    """Each sample's span of time, half-way to its neighbours: its edges (rows + 1) and equally spaced
+    instants inside it (rows × n).
+
+    A window of rows then covers one unbroken stretch of time: the mean over its rows of each span's
+    mean is the stretch's time average, and a momentum term that telescopes across the spans
+    (`SpanMotion.accel`) is exactly the change over the same stretch; as well for the columns each
+    averaged over the last rows before it (`tapered`). Why not the samples themselves: after each
+    reversal the load rings at its antiresonance (b_l alone damps it, over seconds), so a window's
+    mean spring torque carries J_l·Δω_l/T of up to a few hundred mN·m, which cancels only if torque and
+    speed change are taken over the very same stretch; the kinematic error's ripple in the spring
+    torque (K_s·A = 1 N·m on the seed model) aliases in the samples at high motor speed; and where the
+    ringing reverses the load, sgn(ω_l) averages differently from sgn(mean ω_l). Ideal sensors: each
+    window's load balance at the true parameters closes to ≤ 0.4 mN·m (rms 0.11) instead of up to 8
+    mN·m (rms 1.6).
+    """
+    t = run.t
+    edges = np.concatenate([[1.5 * t[0] - 0.5 * t[1]], (t[:-1] + t[1:]) / 2, [1.5 * t[-1] - 0.5 * t[-2]]])
+    instants = SPAN_INSTANTS_MIN
+    if (ke := model.kinematic_error) is not None:
+        phase_step_rad = ke.k * float(np.max(np.abs(np.diff(run["theta_m"]))))
+        instants = min(max(instants, math.ceil(phase_step_rad / SPAN_PHASE_STEP_RAD)), SPAN_INSTANTS_MAX)
+    at = edges[:-1, None] + np.diff(edges)[:, None] * ((np.arange(instants) + 0.5) / instants)
+    return edges, at
 
 
 @dataclass
-class SampleSpans:
-    """Each sample's span of time, half-way to its neighbours, seen at equally spaced instants inside it.
+class SpanMotion:
+    """One body's motion over each sample's span (`span_instants`), from a cubic spline of its angle."""
 
-    A window of rows then covers one unbroken stretch of time: the mean over its rows of a span's mean
-    is the stretch's time average, and the mean of `accel_l` is exactly (ω_l at its end − ω_l at its
-    start)/its length, so the load's momentum balance holds over the same stretch in every term; and
-    as well for the same columns each averaged over the last rows before it (`tapered`).
-    """
+    angle: np.ndarray  # (rows, instants) [rad]
+    speed: np.ndarray  # (rows, instants): the spline's slope [rad/s]
+    accel: np.ndarray  # (rows,): the speed change across the span / its length [rad/s²]
 
-    deflection: np.ndarray  # (rows, instants): r·θ_m + A·sin(k·θ_m + φ) − θ_l [rad]
-    error_wave: np.ndarray  # (rows, instants): sin(k·θ_m + φ), zero without a kinematic error [–]
-    omega_l: np.ndarray  # (rows, instants): the load's speed [rad/s]
-    accel_l: np.ndarray  # (rows,): the load's speed change across the span / its length [rad/s²]
+
+def span_motion(run: Run, column: str, edges: np.ndarray, at: np.ndarray) -> SpanMotion:
+    spline = CubicSpline(run.t, run[column])
+    return SpanMotion(
+        np.asarray(spline(at)), np.asarray(spline(at, 1)), np.diff(spline(edges, 1)) / np.diff(edges)
+    )
 
 
 def tapered(column: np.ndarray, rows: int) -> np.ndarray:
@@ -234,35 +260,6 @@ def tapered(column: np.ndarray, rows: int) -> np.ndarray:
     end = np.arange(1, len(column) + 1)
     count = np.minimum(end, rows)
     return np.asarray((sums[end] - sums[end - count]) / count)
-
-
-def sample_spans(run: Run, model: HarmonicDriveModel) -> SampleSpans:
-    """`SampleSpans` of a run with θ_m and θ_l, through cubic splines of both (speeds: the splines' slopes).
-
-    Why not the samples themselves: after each reversal the load rings at its antiresonance (b_l alone
-    damps it, over seconds), so a window's mean spring torque carries J_l·Δω_l/T of up to a few hundred
-    mN·m, which cancels only if torque and speed change are taken over the very same stretch; the
-    kinematic error's ripple in the spring torque (K_s·A = 1 N·m on the seed model) aliases in the
-    samples at high motor speed; and where the ringing reverses the load, sgn(ω_l) averages differently
-    from sgn(mean ω_l). Ideal sensors: each window's balance at the true parameters then closes to
-    ≤ 0.4 mN·m (rms 0.11) instead of up to 8 mN·m (rms 1.6).
-    """
-    t = run.t
-    edges = np.concatenate([[1.5 * t[0] - 0.5 * t[1]], (t[:-1] + t[1:]) / 2, [1.5 * t[-1] - 0.5 * t[-2]]])
-    theta_m, theta_l = CubicSpline(t, run["theta_m"]), CubicSpline(t, run["theta_l"])
-    instants = SPAN_INSTANTS_MIN
-    if (ke := model.kinematic_error) is not None:
-        phase_step_rad = ke.k * float(np.max(np.abs(np.diff(run["theta_m"]))))
-        instants = min(max(instants, math.ceil(phase_step_rad / SPAN_PHASE_STEP_RAD)), SPAN_INSTANTS_MAX)
-    at = edges[:-1, None] + np.diff(edges)[:, None] * ((np.arange(instants) + 0.5) / instants)
-    motor_at = theta_m(at)
-    speed_at_edges = theta_l(edges, 1)
-    return SampleSpans(
-        deflection_of(model, motor_at, theta_l(at)),
-        np.zeros_like(motor_at) if ke is None else np.sin(ke.k * motor_at + ke.phi),
-        np.asarray(theta_l(at, 1)),
-        np.diff(speed_at_edges) / np.diff(edges),
-    )
 
 
 @dataclass
@@ -285,6 +282,11 @@ class SweepPart:
     def torque(self) -> np.ndarray:
         """Mean motor torque K_m·i_a per window [N·m]."""
         return self.mean(self.ctx.torque_constant_nm_per_a * self.run["i_a"])
+
+
+def window_means(part: SweepPart, column: np.ndarray) -> np.ndarray:
+    """`column` averaged over each of the part's windows, their edges ramped over TAPER_S (`tapered`)."""
+    return part.mean(tapered(column, max(1, round(TAPER_S * part.run.sample_rate_hz))))
 
 
 def sweep_parts(runs: Sequence[Run], model: HarmonicDriveModel) -> list[SweepPart]:
@@ -432,7 +434,7 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
 
     The load's momentum over a window's stretch of time: mean T_s = τ_ext + mean F_l + J_l·Δω_l/T, with
     T_s = spring(r·θ_m + A·sin(k·θ_m + φ) − θ_l − offset) and F_l = sgn(ω_l)·f_cl + b_l·ω_l averaged
-    over the stretch inside every sample's span (`sample_spans`). Windows at several loads separate the
+    over the stretch inside every sample's span (`span_instants`). Windows at several loads separate the
     stiffness, both directions f_cl, several speeds b_l.
 
     The kinematic error's amplitude A is fitted here too, and only reported as a metric: at low speed
@@ -469,15 +471,17 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
     ke = model.kinematic_error
     held = {"theta_l_offset": 0.0, "J_l": model.mechanics.J_l} | ({"A": ke.A} if ke is not None else {})
     held_scales = {"theta_l_offset": 1e-5, "J_l": model.mechanics.J_l} | ({"A": ke.A} if ke else {})
-    # By run (a load-variation run holds one part per load): its spans, and rows in a window's ramp.
-    spans = {id(part.run): sample_spans(part.run, model) for part in used}
-    ramps = {id(part.run): max(1, round(TAPER_S * part.run.sample_rate_hz)) for part in used}
-
-    def window_means(part: SweepPart, column: np.ndarray) -> np.ndarray:
-        return part.mean(tapered(column, ramps[id(part.run)]))
+    # By run (a load-variation run holds one part per load): the motions over each sample's span.
+    spans: dict[int, tuple[np.ndarray, np.ndarray, SpanMotion]] = {}
+    for part in used:
+        if id(part.run) not in spans:
+            edges, at = span_instants(part.run, model)
+            motor, load = (span_motion(part.run, column, edges, at) for column in ("theta_m", "theta_l"))
+            wave = np.zeros_like(at) if ke is None else np.sin(ke.k * motor.angle + ke.phi)
+            spans[id(part.run)] = (deflection_of(model, motor.angle, load.angle), wave, load)
 
     loads_nm = [window_means(part, part.run["tau_ext"]) for part in used]
-    accels = [window_means(part, spans[id(part.run)].accel_l) for part in used]
+    accels = [window_means(part, spans[id(part.run)][2].accel) for part in used]
     scale_nm = 1e-3  # residuals in mN·m: the unit of the fit's conditioning, not of its result
 
     f_sl = model.load_friction.f_sl if model.load_friction is not None else None
@@ -490,11 +494,9 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
         extra = dict(zip(held, x[len(names) :], strict=True))
         error_change = extra["A"] - ke.A if ke is not None else 0.0
         balance = {
-            run: spring_torque(
-                trial, span.deflection + error_change * span.error_wave - extra["theta_l_offset"]
-            ).mean(axis=1)
-            - load_friction_steady(trial, span.omega_l).mean(axis=1)
-            for run, span in spans.items()
+            run: spring_torque(trial, bent + error_change * wave - extra["theta_l_offset"]).mean(axis=1)
+            - load_friction_steady(trial, load.speed).mean(axis=1)
+            for run, (bent, wave, load) in spans.items()
         }
         return np.concatenate(
             [
