@@ -441,7 +441,9 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
     the error's torque slows the motor through part of each cycle, and the window mean of K_s·A·sin(k·θ_m
     + φ) is far from zero (±140 mN·m at ±5 rad/s on the seed model, against f_cl = 300 mN·m) and odd in
     the direction, like f_cl. Held at the kinematic-error stage's A, that stage's error went into f_cl
-    (A −2.4 % gave f_cl −0.44 %, b_l +0.8 %); fitted, it costs f_cl a wider σ instead.
+    (A −2.4 % gave f_cl −0.44 %, b_l +0.8 %); fitted, it costs f_cl a wider σ instead. J_l likewise:
+    the ringing load's J_l·Δω_l/T differs from window to window, and held at the FRF's J_l (0.6 % off)
+    it moved f_cl by +0.13 %; the windows see J_l to ~0.05 %.
     """
     out = Solved()
     used = [part for part in parts if "theta_l" in part.run and np.any(part.steady)]
@@ -467,10 +469,13 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
                 out.undetermined[name] = (
                     f"loads up to {reach:g} N·m do not pass its breakpoint {breakpoint:g} N·m"
                 )
-    # Fitted with them, reported as metrics only (see above): the load sensor's zero, J_l, A.
+    # Fitted with them, reported as metrics only (see above): the load sensor's zero, J_l, A; each with
+    # its start, scale and lower bound.
     ke = model.kinematic_error
-    held = {"theta_l_offset": 0.0, "J_l": model.mechanics.J_l} | ({"A": ke.A} if ke is not None else {})
-    held_scales = {"theta_l_offset": 1e-5, "J_l": model.mechanics.J_l} | ({"A": ke.A} if ke else {})
+    J_l = model.mechanics.J_l
+    nuisance = {"theta_l_offset": (0.0, 1e-5, -np.inf), "J_l": (J_l, J_l, 0.0)}
+    if ke is not None:
+        nuisance["A"] = (ke.A, ke.A, 0.0)
     # By run (a load-variation run holds one part per load): the motions over each sample's span.
     spans: dict[int, tuple[np.ndarray, np.ndarray, SpanMotion]] = {}
     for part in used:
@@ -491,7 +496,7 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
         if "f_cl" in values and f_sl is not None:
             values["f_sl"] = max(f_sl, values["f_cl"])  # the schema keeps static ≥ Coulomb
         trial = with_values(model, values)
-        extra = dict(zip(held, x[len(names) :], strict=True))
+        extra = dict(zip(nuisance, x[len(names) :], strict=True))
         error_change = extra["A"] - ke.A if ke is not None else 0.0
         balance = {
             run: spring_torque(trial, bent + error_change * wave - extra["theta_l_offset"]).mean(axis=1)
@@ -508,19 +513,20 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
         )
 
     start = list(get_values(model, names).values())
+    starts, scales, lows = zip(*nuisance.values(), strict=True)
     solved = nonlinear_fit(
         residual,
-        [*names, *held],
-        [*start, *held.values()],
-        [*(abs(v) or 1.0 for v in start), *held_scales.values()],
-        lower=[1e-9 if name.startswith("K") else 0.0 for name in names] + [-np.inf, 0.0, 0.0][: len(held)],
+        [*names, *nuisance],
+        [*start, *starts],
+        [*(abs(v) or 1.0 for v in start), *scales],
+        lower=[1e-9 if name.startswith("K") else 0.0 for name in names] + list(lows),
     )
     windows = sum(int(np.count_nonzero(part.steady)) for part in used)
-    for name in held:
+    for name in nuisance:
         solved.metrics[name] = solved.values.pop(name)
         solved.metrics[name + "_std"] = solved.std_errors.pop(name)
     seen = ", ".join(
-        f"{name} = {solved.metrics[name]:.4g} ± {solved.metrics[name + '_std']:.2g}" for name in held
+        f"{name} = {solved.metrics[name]:.4g} ± {solved.metrics[name + '_std']:.2g}" for name in nuisance
     )
     solved.notes.append(
         f"mean spring torque = τ_ext + F_l + J_l·Δω_l/T over {windows} steady windows, each sample's span"
