@@ -93,6 +93,12 @@ class TrafficRecorder(can.Listener):
                 entry.channel = None
                 self._writer.on_message_received(entry)
 
+    @property
+    def recording(self) -> bool:
+        """Whether a file is open (read without the lock: a frame sent as recording starts or stops
+        may or may not be in the file, as it might by a hair either way with the lock)."""
+        return self._writer is not None
+
     def on_message_sent(self, msg: can.Message) -> None:
         msg.is_rx = False
         msg.timestamp = time.time()
@@ -181,6 +187,8 @@ class RecordedNetwork(canopen.Network):
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)
+        if not self.recorder.recording:  # a message for the file only if there is one (1 kHz)
+            return
         msg = can.Message(
             arbitration_id=can_id, data=data, is_extended_id=can_id > 0x7FF, is_remote_frame=remote
         )

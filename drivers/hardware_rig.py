@@ -557,6 +557,7 @@ class HardwareRig(Rig):
             ):
                 # In the period's slack; the chunk's last cycle takes its samples in _fill_theta_l.
                 self._take_daq(self.daq.read_samples(timeout_s=0))
+                self._merged_daq()  # here, not in the chunk's last cycle, after the drive's answer
                 undrained = 0
             if log is not None:
                 log.t_sync_s.append(feedback.t_s)
@@ -634,9 +635,11 @@ class HardwareRig(Rig):
         if self.servo.settings.pace:
             budget = t_last + self.period_s - ALIGN_MARGIN_S - time.monotonic()
             try:
-                self._take_daq(self.daq.read_until(t_last, timeout_s=max(0.0, budget)))
+                # No time left (the usual case): what there is, without raising and formatting a timeout.
+                block = self.daq.read_until(t_last, timeout_s=budget) if budget > 0 else None
             except DaqError:  # not in yet, or a dead line: take what there is, judge below
-                self._take_daq(self.daq.read_samples(timeout_s=0))
+                block = None
+            self._take_daq(block if block is not None else self.daq.read_samples(timeout_s=0))
         else:
             self._take_daq(self.daq.read_until(t_last))
         t_device, theta_l, theta_m = self._merged_daq()
