@@ -23,11 +23,15 @@ method rather than noise, both cases share it (observed errors on this truth in 
 - A 1.5 % / 1.2 %, φ 0.03 rad abs [0.7 / 0.7 %, 3e-4 rad]: the error is seen through the load's response
   G(jkω) ≈ −K_s/(J_l·(kω)²), so A carries the FRF's J_l error 1:1 (−0.6 %); the method's own is
   +0.04 % (σ 0.13 %; was −1.7 %, tests/test_stiffness_stage.py).
-- s1, s2 2 % / 1 % [0.1 %]; s3 0.5 % / 0.3 % [< 0.01 %].
-- k_v 4 % / 3 % [1.2 / 1.1 %]: k_v·C·ω is 4 % of the friction at 100 rad/s, and the windows' momentum at
-  their ends (sampled speed, ringing transmission) moves a fast window by ~1e-4 N·m.
-- a_n, b_n 5e-5 N·m abs [≤ 2.1e-5]: the velocity loop passes harmonic n at n·5 rad/s short by |T − 1|
-  (1.7 % of the 4th), a bias shared by both cases; 5e-5 N·m is 0.07 % of s3.
+- s1, s2 0.3 % / 0.1 % [0.03 / 0.02 %]; s3 0.02 % / 0.005 % [0.005 / 0.0002 %, noisy σ 0.003 %]: the
+  passes and the windows with the motor's and the load's momentum (the speed ripple the velocity loop
+  lets each friction harmonic make; the ringing load in the windows).
+- k_v 1 % / 0.5 % [0.24 / 0.19 %]: k_v·C·ω is 4 % of the friction at 100 rad/s; what is left at the true
+  parameters, +0.15 %, comes from the fastest windows (±200 rad/s leave ±4–14 µN·m at the truth, the
+  simulated plant's 0.1 ms step, we think); noisy σ 0.1 %. (Before: 1.2 %, from the sampled momentum
+  at the windows' ends and from a4, b4 below.)
+- a_n, b_n 1e-5 N·m abs [≤ 2e-6]: 0.014 % of s3. (Before the momentum was taken out of the passes: up to
+  2.1e-5, a4 +1.6 %, b4 +1.5 %.)
 - static_factor 1.5 % / 1.5 % [0.7 / 0.3 %]: each breakaway is bracketed within 2 % by the cycle it
   happens in (the estimate is the bracket's middle), and only ~7 sticks break away slowly enough.
 """
@@ -61,13 +65,13 @@ TOLERANCES: dict[str, tuple[float, float, bool]] = {
     "J_l": (0.02, 0.02, True),
     "A": (0.015, 0.012, True),
     "phi": (0.03, 0.03, False),
-    "s1": (0.02, 0.01, True),
-    "s2": (0.02, 0.01, True),
-    "s3": (0.005, 0.003, True),
-    "k_v": (0.04, 0.03, True),
+    "s1": (0.003, 0.001, True),
+    "s2": (0.003, 0.001, True),
+    "s3": (0.0002, 0.00005, True),
+    "k_v": (0.01, 0.005, True),
     "static_factor": (0.015, 0.015, True),
 }
-FOURIER_ABS_NM = 5e-5
+FOURIER_ABS_NM = 1e-5
 FOURIER = [f"a{n}" for n in range(1, 11)] + [f"b{n}" for n in range(1, 11)]
 FLAGGED = ("K_m", "r", "v_c", "a0", "b_m", "D_s", "f_sl", "k")
 """Held whatever the data: given (K_m, r), not separable (v_c, a0, b_m), not resolved by this chirp (D_s:
@@ -232,7 +236,9 @@ def test_a_baseline_law_is_fitted_by_its_own_parameters(
     for name in ("f_st", "omega_st"):
         estimate = result.estimate(name)
         assert not estimate.identifiable and estimate.value == get_values(start, [name])[name], estimate
-    assert "partner f_st" in result.estimate("omega_st").note
+    # Flagged each on its own σ or through its partner (which, depends on how tight the windows are).
+    notes = [result.estimate(name).note for name in ("f_st", "omega_st")]
+    assert all("not determined" in note for note in notes), notes
     static = result.estimate("f_sm")
     assert static.identifiable
     assert static.value + 0.015 == pytest.approx(0.075 + 0.01, rel=0.015), static
