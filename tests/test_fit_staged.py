@@ -27,9 +27,9 @@ method rather than noise, both cases share it (observed errors on this truth in 
   passes and the windows with the motor's and the load's momentum (the speed ripple the velocity loop
   lets each friction harmonic make; the ringing load in the windows).
 - k_v 1 % / 0.5 % [0.24 / 0.19 %]: k_v·C·ω is 4 % of the friction at 100 rad/s; what is left at the true
-  parameters, +0.15 %, comes from the fastest windows (±200 rad/s leave ±4–14 µN·m at the truth, the
-  simulated plant's 0.1 ms step, we think); noisy σ 0.1 %. (Before: 1.2 %, from the sampled momentum
-  at the windows' ends and from a4, b4 below.)
+  parameters, +0.15 %, is the simulated plant's 0.1 ms step (the same campaign from a 10 µs plant:
+  +0.02 %, σ 0.007 %); noisy σ 0.1 %. (Before: 1.2 %, from the sampled momentum at the windows' ends
+  and from a4, b4 below.)
 - a_n, b_n 1e-5 N·m abs [≤ 2e-6]: 0.014 % of s3. (Before the momentum was taken out of the passes: up to
   2.1e-5, a4 +1.6 %, b4 +1.5 %.)
 - static_factor 1.5 % / 1.5 % [0.7 / 0.3 %]: each breakaway is bracketed within 2 % by the cycle it
