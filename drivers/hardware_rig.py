@@ -103,8 +103,6 @@ DAQ_DRAIN_WITHIN_S: Final = 400e-6
 """Paced, the samples are taken only in a cycle answered within this of its SYNC (else in a later one,
 or at the chunk's end): taking them cost 0.2-0.45 ms of wall time on a shared 2-core VM (measured), and
 two thirds of the cycles late for the 1 ms period were the ones that took them after a late answer."""
-DAQ_MERGE_PARTS: Final = 32
-"""The samples taken are merged into one array each whenever this many pieces have gathered."""
 ALIGN_MARGIN_S: Final = 800e-6
 """Paced, what a chunk's end keeps of the period, after the wait for the DAQ, to interpolate: the work
 after the wait took 0.33 ms of CPU at p50 and 0.63 ms at most on a shared 2-core VM (measured), on top of
@@ -557,7 +555,6 @@ class HardwareRig(Rig):
             ):
                 # In the period's slack; the chunk's last cycle takes its samples in _fill_theta_l.
                 self._take_daq(self.daq.read_samples(timeout_s=0))
-                self._merged_daq()  # here, not in the chunk's last cycle, after the drive's answer
                 undrained = 0
             if log is not None:
                 log.t_sync_s.append(feedback.t_s)
@@ -631,7 +628,6 @@ class HardwareRig(Rig):
                 log.daq_theta_m_rad.extend([math.nan] * len(rows))
             return
         t_last = float(t_sync[-1])
-        self._merged_daq()  # while the sample after the last SYNC is on its way
         if self.servo.settings.pace:
             budget = t_last + self.period_s - ALIGN_MARGIN_S - time.monotonic()
             try:
@@ -677,8 +673,7 @@ class HardwareRig(Rig):
         self.daq_tally.add(block)
         if len(block):
             self._daq_samples.append((block.t_device_s, block.theta_l_rad, block.theta_m_rad))
-            if len(self._daq_samples) >= DAQ_MERGE_PARTS:
-                self._merged_daq()
+            self._merged_daq()  # each take, in the slack it is taken in: not all at the chunk's end
 
     def _start_daq(self) -> None:
         if self.daq is None or self._streaming:
