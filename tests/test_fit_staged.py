@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 
+import campaign
 import numpy as np
 import pytest
 
@@ -79,12 +80,7 @@ the truth's undamped resonance is narrower than the FRF's lines), not timed (f_s
 
 
 def play(config: RigConfig, truth: HarmonicDriveModel, store: RunStore) -> list[Run]:
-    runs = []
-    for name in EXPERIMENTS:
-        outcome = run_experiment(name, config, {}, store, rig=SimRig(config, model=truth))
-        assert outcome.status == "complete", f"{name}: {outcome.reason}"
-        runs.append(store.read(outcome.run_id))
-    return runs
+    return campaign.play(EXPERIMENTS, config, truth, store)
 
 
 def perturbed(truth: HarmonicDriveModel) -> HarmonicDriveModel:

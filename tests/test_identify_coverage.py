@@ -13,6 +13,7 @@ inflation). The seeds are fixed: the outcome does not vary from run to run.
 
 from __future__ import annotations
 
+import campaign
 import numpy as np
 import pytest
 from scipy.stats import chi2
@@ -141,12 +142,7 @@ def ideal_joint_runs(seed: HarmonicDriveModel, tmp_path_factory: pytest.TempPath
     ideal = {"encoder_counts_per_rev": 0, "current_noise_a": 0.0, "load_sensor_noise_rad": 0.0}
     config = config.model_copy(update={"sensors": config.sensors.model_copy(update=ideal)})
     assert config.sim_dt_s == 1e-4
-    runs = []
-    for experiment in JOINT_EXPERIMENTS:
-        outcome = run_experiment(experiment, config, {}, store, rig=SimRig(config, model=seed))
-        assert outcome.status == "complete", outcome.reason
-        runs.append(store.read(outcome.run_id))
-    return runs
+    return campaign.play(JOINT_EXPERIMENTS, config, seed, store)
 
 
 @pytest.mark.parametrize("name", ["J_m", "J_l"])

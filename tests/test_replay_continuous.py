@@ -13,6 +13,7 @@ fails on J_l (−0.3479 % at σ 0.0553 %).
 
 from __future__ import annotations
 
+import campaign
 import pytest
 
 from model.fit.parameters import get_values
@@ -21,9 +22,7 @@ from model.params import HarmonicDriveModel
 from model.run import Run
 from rig.config import load_rig_config
 from rig.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S
-from rig.runner import run_experiment
 from rig.store import RunStore
-from sim_backend.inprocess import SimRig
 
 FINE_STEP_S = 1e-6
 REPLAY_STEP_S = 1e-4
@@ -36,12 +35,7 @@ def near_continuous_runs(seed: HarmonicDriveModel, tmp_path_factory: pytest.Temp
     config = load_rig_config("sim").model_copy(update={"sim_dt_s": FINE_STEP_S})
     ideal = {"encoder_counts_per_rev": 0, "current_noise_a": 0.0, "load_sensor_noise_rad": 0.0}
     config = config.model_copy(update={"sensors": config.sensors.model_copy(update=ideal)})
-    runs = []
-    for experiment in JOINT_EXPERIMENTS:
-        outcome = run_experiment(experiment, config, {}, store, rig=SimRig(config, model=seed))
-        assert outcome.status == "complete", outcome.reason
-        runs.append(store.read(outcome.run_id))
-    return runs
+    return campaign.play(JOINT_EXPERIMENTS, config, seed, store)
 
 
 def test_the_replay_follows_the_process_that_made_the_run(near_continuous_runs: list[Run]):

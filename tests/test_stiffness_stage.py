@@ -30,6 +30,7 @@ a deterministic floor (J_l: 0.004 %), so not a yardstick here.
 
 from __future__ import annotations
 
+import campaign
 import pytest
 
 from model.fit.parameters import get_values, with_values
@@ -43,9 +44,7 @@ from rig.identification.dynamics_stage import (
     stiffness_and_load_friction,
     sweep_parts,
 )
-from rig.runner import run_experiment
 from rig.store import RunStore
-from sim_backend.inprocess import SimRig
 
 K_SIGMA = 3.0  # see the module docstring
 K_BIAS = 0.3  # ideal sensors' error / the rig sensors' σ, see the module docstring
@@ -53,12 +52,7 @@ EXPERIMENTS = ("speed-sweep", "load-variation", "position-friction")
 
 
 def play(config: RigConfig, truth: HarmonicDriveModel, store: RunStore) -> list[Run]:
-    runs = []
-    for name in EXPERIMENTS:
-        outcome = run_experiment(name, config, {}, store, rig=SimRig(config, model=truth))
-        assert outcome.status == "complete", f"{name}: {outcome.reason}"
-        runs.append(store.read(outcome.run_id))
-    return runs
+    return campaign.play(EXPERIMENTS, config, truth, store)
 
 
 @pytest.fixture(scope="module")
