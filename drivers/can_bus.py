@@ -170,6 +170,29 @@ class PeriodicFrame(PeriodicMessageTask):
         )
 
 
+class ReceiveFailure(can.Listener):
+    """What ended the network's receiving: the bus's error, told once and kept.
+
+    Without a listener that takes errors, python-can's notifier thread dies on the bus's first error
+    with a traceback on stderr, and canopen re-raises it only at `disconnect`. Taken here, it is one
+    warning, and the servo names it when the drive falls silent. A bus that keeps failing is asked
+    again every NOTIFIER_CYCLE, not in a busy loop.
+    """
+
+    def __init__(self, retry_s: float) -> None:
+        self.error: Exception | None = None
+        self._retry_s = retry_s
+
+    def on_message_received(self, msg: can.Message) -> None:
+        pass
+
+    def on_error(self, exc: Exception) -> None:
+        if self.error is None:
+            self.error = exc
+            logger.warning("CAN receive failed: %s", exc)
+        time.sleep(self._retry_s)
+
+
 class RecordedNetwork(canopen.Network):
     """A canopen network whose traffic, both ways, goes to a `TrafficRecorder`, with joined threads.
 
@@ -183,7 +206,8 @@ class RecordedNetwork(canopen.Network):
     def __init__(self, bus: can.BusABC, recorder: TrafficRecorder | None = None) -> None:
         super().__init__(bus)
         self.recorder = recorder if recorder is not None else TrafficRecorder()
-        cast(list[can.Listener], self.listeners).append(self.recorder)
+        self.receive_failure = ReceiveFailure(self.NOTIFIER_CYCLE)
+        cast(list[can.Listener], self.listeners).extend([self.recorder, self.receive_failure])
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         super().send_message(can_id, data, remote)

@@ -510,9 +510,12 @@ class CanopenServo:
             )
             self._silent = not answered
             if not answered:
+                failure = network.receive_failure.error
+                why = f"CAN receive failed: {failure}" if failure is not None else None
                 raise SyncTimeoutError(
                     f"node {self.settings.node_id}: no TPDO answered the SYNC within"
-                    f" {self.sync_timeout_s * 1e3:.1f} ms ({'; '.join(self.faults()) or 'no fault reported'})"
+                    f" {self.sync_timeout_s * 1e3:.1f} ms"
+                    f" ({why or '; '.join(self.faults()) or 'no fault reported'})"
                 )
             values1, values2 = self._tpdo_values
             t_answer = max(self._tpdo_t_s)

@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterator
 import can
 import pytest
 
+from drivers.can_bus import RecordedNetwork
 from drivers.tcp_can import CanHub
 
 WAIT_S = 5.0
@@ -145,3 +146,36 @@ def test_a_failing_listener_is_logged_and_gets_no_more_frames(
         sender.shutdown()
         watcher.shutdown()
         bus.shutdown()
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_hub_that_goes_away_is_one_warning_and_a_kept_reason_not_a_dead_thread(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The twins' process killed: its hub closes every stream. The host's receive thread must neither die
+    with a traceback (python-can's notifier re-raises an error no listener takes) nor spin on a bus
+    that keeps failing: the error is kept for the servo's message, told once, and asked again every
+    NOTIFIER_CYCLE. canopen still re-raises it at disconnect, as it documents."""
+    hub = CanHub()
+    network = RecordedNetwork(client(hub))
+    network.connect()
+    calls: list[float] = []
+    failure = network.receive_failure
+    real = failure.on_error
+
+    def counted(exc: Exception) -> None:
+        calls.append(time.monotonic())
+        real(exc)
+
+    failure.on_error = counted  # type: ignore[method-assign]
+    with caplog.at_level(logging.WARNING, logger="drivers.can_bus"):
+        hub.close()
+        assert until(lambda: failure.error is not None), "the hub's closing was not seen"
+        time.sleep(10 * RecordedNetwork.NOTIFIER_CYCLE)
+    assert "the hub closed the bus" in str(failure.error)
+    # Asked again at most once a cycle (+2: the first error and a cycle begun at the boundary).
+    span = calls[-1] - calls[0]
+    assert len(calls) <= span / RecordedNetwork.NOTIFIER_CYCLE + 2, (len(calls), span)
+    assert [r.getMessage() for r in caplog.records].count(f"CAN receive failed: {failure.error}") == 1
+    with pytest.raises(can.CanOperationError, match="hub closed"):
+        network.disconnect()
