@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
-from scipy.signal import savgol_filter
+from scipy.signal import savgol_coeffs, savgol_filter
 
 from model import kernel as k
 from model.errors import UserInputError
@@ -107,10 +107,12 @@ starts or reverses (see `_Replay`). Karnopp friction's error there is first orde
 ideal-sensor data of a plant stepped at 0.1 µs (0.1 ms elsewhere) J_l came out −0.059 / −0.026 /
 −0.014 / −0.010 % at 33 / 10 / 3.3 / 1 µs (σ 0.007 %). Cost on those runs: 2.6× the steps of a plain
 0.1 ms replay (553 segments for 156 windows), 30 against 12 CPU-ms a residual (before `VOLTAGE_REFINE`).
-A coarse encoder costs more: its repeated counts at low speed read as stops, and on an 8 s voltage-mode
-lab run of the independent generator (14-bit) the replay takes 1.4 M steps against 80 k plain, and the
-identification 17.9 against 3.9 CPU-s. Cheaper, less exact: 5 µs here (J_l −0.007 % on the 1 µs plant)
-and a quarter step in voltage mode (J_m +0.014 %), each measured alone; together 0.64 M steps."""
+Noisy sensors cost more: a still body's measured speed flips sign with the noise, which `speed_bands`
+tells from a stop. On an 8 s voltage-mode lab run of the independent generator (14-bit encoder, noisy
+output sensor) a residual took 1.38 M steps without it, 0.93 M with it (0.80 M of them the voltage
+mode's tenth step), and the identification 19.9 against 17.0 CPU-s (3.9 with no refinement at all).
+Cheaper, less exact: 5 µs here (J_l −0.007 % on the 1 µs plant) and a quarter step in voltage mode
+(J_m +0.014 %), each measured alone; together 0.64 M steps (without `speed_bands`)."""
 
 
 def plant_step(run: Run) -> float | None:
@@ -182,8 +184,15 @@ class _Replay:
 
     @classmethod
     def of(
-        cls, run: Run, channels: list[str], scales: dict[str, float], dt_s: float, continuous: bool = False
+        cls,
+        run: Run,
+        channels: list[str],
+        scales: dict[str, float],
+        dt_s: float,
+        continuous: bool = False,
+        bands: dict[str, float] | None = None,
     ) -> _Replay | None:
+        """`bands`: the whole run's `speed_bands` (a window alone is too short to tell its noise)."""
         mode = replay_mode(run)
         intervals = np.diff(run.t)
         counts = np.maximum(1, np.ceil(intervals / dt_s - 1e-9)).astype(int)
@@ -191,7 +200,7 @@ class _Replay:
         if not (np.all(counts == counts[0]) and np.allclose(steps, steps[0], rtol=1e-9, atol=0.0)):
             return None  # an irregular time base: `replay_rows` cuts each interval on its own
         if continuous:
-            refined = _event_intervals(run)
+            refined = _event_intervals(run, bands)
             refined[0] = False  # the window's start speed is lagged by the base step's half
             fine = np.maximum(1, np.ceil(intervals / EVENT_STEP_S - 1e-9)).astype(int)
             counts = np.where(refined, np.maximum(counts, fine), counts)
@@ -261,13 +270,19 @@ class _Replay:
         return np.asarray(((rows[:, self.outputs] - self.measured) / self.scales).T.ravel())
 
 
-def _event_intervals(run: Run) -> np.ndarray:
+def _event_intervals(run: Run, bands: dict[str, float] | None = None) -> np.ndarray:
     """Per sample interval: whether a body's measured speed changes sign (or leaves or reaches zero)
-    across it or its neighbours: where Karnopp friction stops, starts or reverses a body."""
+    across it or its neighbours: where Karnopp friction stops, starts or reverses a body.
+
+    A speed within its body's `bands` entry (`speed_bands`: what the sensor's noise alone makes of a
+    still body) counts as zero, so a body at rest or crawling is one stop, not a flip every sample.
+    """
     event = np.zeros(len(run) - 1, bool)
     for speed in ("omega_m", "omega_l"):
         if speed in run:
-            sign = np.sign(run[speed])
+            omega = run[speed]
+            band = (bands or {}).get(speed, 0.0)
+            sign = np.where(np.abs(omega) > band, np.sign(omega), 0.0)
             event |= sign[1:] != sign[:-1]
     return event | np.append(event[1:], False) | np.insert(event[:-1], 0, False)
 
@@ -348,6 +363,40 @@ def with_smooth_velocities(run: Run, window_s: float = SMOOTHING_WINDOW_S, lag_s
     return Run(columns, run.meta)
 
 
+SPEED_BAND_SIGMAS = 3.0
+"""A measured speed within this many of its own noise's σ of zero may be a still body (`speed_bands`)."""
+
+
+def speed_bands(run: Run, window_s: float = SMOOTHING_WINDOW_S) -> dict[str, float]:
+    """Per body, the speed the sensor's noise alone gives the smoothed speed (`with_smooth_velocities`),
+    times SPEED_BAND_SIGMAS: 0 for ideal data.
+
+    Position noise: a quantizer's, q/√12, when every step is a whole number of the smallest step q (an
+    encoder's count); else white noise's, from the third differences' median absolute value (they are
+    20σ² in variance and nearly free of the motion at 1 kHz). Seen through the local cubic's derivative
+    weights. On the independent generator's 8 s lab run (14-bit encoder, noisy output sensor), the
+    intervals stepped finely went 2,074 → 524 of 7,999 (the load's speed had flipped sign 1,061 times),
+    the steps of a residual 1.38 M → 0.93 M; the estimates moved by 0.3σ at most (J_m −0.089 → −0.066 %,
+    J_l +0.022 → −0.028 %, σ 0.13 / 0.15-0.18 %).
+    """
+    dt = float(np.median(np.diff(run.t)))
+    length = max(5, round(window_s / dt) | 1)
+    gain = float(np.linalg.norm(savgol_coeffs(length, 3, deriv=1, delta=dt)))
+    bands = {}
+    for pos, vel in (("theta_m", "omega_m"), ("theta_l", "omega_l")):
+        if pos not in run or len(run[pos]) <= length:
+            continue
+        steps = np.abs(np.diff(run[pos]))
+        steps = steps[steps > 0]
+        q = float(steps.min()) if len(steps) else 0.0
+        if q > 0 and np.allclose(steps / q, np.round(steps / q), rtol=0.0, atol=1e-3):
+            noise = q / math.sqrt(12.0)
+        else:
+            noise = 1.4826 * float(np.median(np.abs(np.diff(run[pos], 3)))) / math.sqrt(20.0)
+        bands[vel] = SPEED_BAND_SIGMAS * gain * noise
+    return bands
+
+
 def replay_step(run: Run, dt_s: float) -> float:
     """The integration step a replay of `run` takes: its typical sample interval cut into equal steps
     of at most `dt_s` (as `_Replay` and `model.simulate.replay_rows` cut each interval)."""
@@ -379,6 +428,7 @@ class TrajectoryProblem:
         self.windows: list[_Window] = []
         for run in runs:
             step, continuous = replay_scheme(run, dt_s)
+            bands = speed_bands(run) if continuous else None
             run = with_smooth_velocities(run, lag_s=replay_step(run, step) / 2)
             channels = [c for c in CHANNELS if c in run]
             pieces = shooting_windows(run, window_s)
@@ -390,7 +440,7 @@ class TrajectoryProblem:
                     scales,
                     float(piece.t[0] - run.t[0]),
                     step,
-                    _Replay.of(piece, channels, scales, step, continuous)
+                    _Replay.of(piece, channels, scales, step, continuous, bands)
                     if piece.input_column is not None
                     else None,
                 )
