@@ -3,8 +3,14 @@
 Scheme: semi-implicit (symplectic) Euler. Each step computes every torque from the state at the start
 of the step, updates the velocities, then the positions with the new velocities. Stick-slip follows
 Karnopp: inside a small velocity band the stuck branch of docs/MODEL.md applies and the velocity is held at
-exactly zero while |ψ| ≤ f_s; a moving body whose velocity would change sign in one step is stopped at
-zero instead, so every reversal passes through stick and friction never reverses the motion it opposes.
+exactly zero while |ψ| ≤ f_s. The events are located inside the step (the torques are held over it, so
+each part of the step has a constant acceleration): a moving body whose velocity would change sign stops
+at the zero crossing and the stuck rule decides the step's remainder (stay at zero, or break away the
+other way at once); a body breaking away takes the stuck branch's friction until its speed reaches the
+band's edge and the moving law after that instant. So every reversal passes through stick, friction never
+reverses the motion it opposes, and the new velocity is continuous in the parameters: no event moves by
+a whole step when an inertia changes by a hair (tests/test_kernel_events.py), which the trajectory fit's
+exact replay of sim runs needs for a smooth cost.
 LuGre and Dahl are smooth laws: their bristle state is advanced with the exact solution of its linear
 ODE over the step (it is far too stiff for explicit Euler at useful steps).
 
@@ -179,6 +185,37 @@ def load_levels(p: np.ndarray, law: int, speed: float) -> tuple[float, float]:
 
 
 @njit(cache=True, inline="always")
+def _breakaway(
+    omega: float,
+    psi: float,
+    direction: float,
+    limit: float,
+    level: float,
+    viscous: float,
+    inertia: float,
+    span: float,
+    band: float,
+) -> tuple[float, bool]:
+    """The velocity after `span` [s] of breaking away in `direction` from ω inside the band; whether the
+    speed left the band on the way.
+
+    The stuck branch's friction direction·limit applies until the speed along `direction` reaches the
+    band's edge, the moving law (`level` + viscous) after it. The edge is located inside the span (the
+    acceleration is constant on each side of it), so the switch of law moves continuously with the
+    parameters instead of by a whole step.
+    """
+    new = omega + span * (psi - direction * limit) / inertia
+    speed = direction * omega
+    speed_new = direction * new
+    if speed_new < band:
+        return new, False
+    to_edge = span * (band - speed) / (speed_new - speed)
+    at_edge = omega + to_edge * (psi - direction * limit) / inertia
+    friction = direction * level + viscous * at_edge
+    return at_edge + (span - to_edge) * (psi - friction) / inertia, True
+
+
+@njit(cache=True, inline="always")
 def _karnopp(
     omega: float,
     psi: float,
@@ -193,23 +230,34 @@ def _karnopp(
     """One velocity update under Karnopp friction. Returns (new velocity, friction actually applied).
 
     `moving`/`static` are magnitudes; `asym` is added to them in the direction of motion (or of ψ when
-    stuck). The friction returned is the one consistent with the velocity change, so that the energy
-    it dissipates can be accounted for exactly.
+    stuck). The friction returned is the one consistent with the velocity change (ψ − J·Δω/dt), so
+    that the energy it dissipates can be accounted for exactly.
+
+    Events are located inside the step, not at its start: a reversal stops at its zero crossing and
+    the stuck rule decides the rest of the step (stay, or break away); a breakaway switches from the
+    static to the moving law where the speed crosses the band's edge. The new velocity is then
+    continuous in the parameters: no event jumps by a whole step when a parameter moves a little.
     """
-    if abs(omega) < band:
-        direction = _sign(psi)
-        limit = max(static + asym * direction, 0.0)
-        if abs(psi) <= limit:
-            return 0.0, psi + inertia * omega / dt
-        friction = direction * limit
-        return omega + dt * (psi - friction) / inertia, friction
-    direction = _sign(omega)
-    friction = direction * max(moving + asym * direction, 0.0) + viscous * omega
-    new = omega + dt * (psi - friction) / inertia
-    if new * omega < 0.0:
-        # A reversal passes through stick: stop at zero, the next step decides breakaway.
+    start = omega  # the velocity the stuck rule starts from, over `span`
+    span = dt
+    if abs(omega) >= band:
+        direction = _sign(omega)
+        friction = direction * max(moving + asym * direction, 0.0) + viscous * omega
+        new = omega + dt * (psi - friction) / inertia
+        if new * omega >= 0.0:
+            return new, friction
+        # A reversal passes through stick: stopped at the zero crossing, at rest for the step's remainder.
+        start = 0.0
+        span = dt * new / (new - omega)
+    direction = _sign(psi)
+    limit = max(static + asym * direction, 0.0)
+    if abs(psi) <= limit:
         return 0.0, psi + inertia * omega / dt
-    return new, friction
+    level = max(moving + asym * direction, 0.0)
+    new, left_band = _breakaway(start, psi, direction, limit, level, viscous, inertia, span, band)
+    if span == dt and not left_band:
+        return new, direction * limit
+    return new, psi - inertia * (new - omega) / dt
 
 
 @njit(cache=True, inline="always")
