@@ -279,15 +279,22 @@ def test_aborted_run_json_says_aborted_and_exits_3(tmp_path: Path) -> None:
 # ---- crash safety: a SIGKILLed run is listed interrupted, its data readable -----------------------
 
 
+LONG_SWEEP = ("--set", "hold_s=5.7")
+
+
 def start_realtime_sweep(tmp_path: Path, *options: str, **popen: Any) -> tuple[subprocess.Popen[str], Path]:
-    """`hdrig run speed-sweep` on a realtime copy of the sim rig (~18 s of wall time); (process, home)."""
+    """`hdrig run speed-sweep` on a realtime copy of the sim rig; (process, home).
+
+    The run is 89 s long (holds of 5.7 s), though each test stops it after ~1 s of data: the length is
+    the margin for a loaded machine's late look at the store. With the default 18 s, one fresh-clone
+    CI run at load 6-10 sent Ctrl-C after the run had ended (exit 0, nothing to stop)."""
     config = yaml.safe_load((RIG_DIR / "sim.yaml").read_text())
     config["pace"] = "realtime"
     rig_file = tmp_path / "realtime.yaml"
     rig_file.write_text(yaml.safe_dump(config))
     home = tmp_path / "home"
     child = subprocess.Popen(
-        [sys.executable, "-m", "rig", "run", "speed-sweep", "--rig", str(rig_file), *options],
+        [sys.executable, "-m", "rig", "run", "speed-sweep", "--rig", str(rig_file), *LONG_SWEEP, *options],
         env={**os.environ, "HDRIG_HOME": str(home)},
         cwd=REPO_ROOT,
         text=True,
