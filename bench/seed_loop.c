@@ -21,25 +21,46 @@ enum { OMEGA_STICK_M = 65, OMEGA_STICK_L = 66, N_PARAMS = 67 };
 
 static double sgn(double x) { return x > 0.0 ? 1.0 : (x < 0.0 ? -1.0 : 0.0); }
 
-/* One Karnopp velocity update; returns the new velocity, the friction applied in *friction. */
+/* Breaking away in `direction` from omega inside the band, over `span`: the static level until the
+ * speed reaches the band's edge (located inside the span), the moving law after it. *left: it did. */
+static double breakaway(double omega, double psi, double direction, double limit, double level,
+                        double viscous, double inertia, double span, double band, int *left) {
+    double next = omega + span * (psi - direction * limit) / inertia;
+    double speed = direction * omega, speed_next = direction * next;
+    *left = speed_next >= band;
+    if (!*left) return next;
+    double to_edge = span * (band - speed) / (speed_next - speed);
+    double at_edge = omega + to_edge * (psi - direction * limit) / inertia;
+    double f = direction * level + viscous * at_edge;
+    return at_edge + (span - to_edge) * (psi - f) / inertia;
+}
+
+/* One Karnopp velocity update, events located inside the step as model/kernel.py's `_karnopp` does;
+ * returns the new velocity, the friction applied in *friction. */
 static double karnopp(double omega, double psi, double moving, double stat, double viscous,
                       double inertia, double dt, double band, double *friction) {
-    if (fabs(omega) < band) {
-        double limit = stat > 0.0 ? stat : 0.0;
-        if (fabs(psi) <= limit) {
-            *friction = psi + inertia * omega / dt;
-            return 0.0;
+    double start = omega, span = dt;
+    if (fabs(omega) >= band) {
+        double direction = sgn(omega);
+        double f = direction * (moving > 0.0 ? moving : 0.0) + viscous * omega;
+        double next = omega + dt * (psi - f) / inertia;
+        if (next * omega >= 0.0) {
+            *friction = f;
+            return next;
         }
-        *friction = sgn(psi) * limit;
-        return omega + dt * (psi - *friction) / inertia;
+        start = 0.0; /* a reversal stops at its zero crossing; the stuck rule takes the remainder */
+        span = dt * next / (next - omega);
     }
-    double f = sgn(omega) * (moving > 0.0 ? moving : 0.0) + viscous * omega;
-    double next = omega + dt * (psi - f) / inertia;
-    if (next * omega < 0.0) {
+    double direction = sgn(psi);
+    double limit = stat > 0.0 ? stat : 0.0;
+    if (fabs(psi) <= limit) {
         *friction = psi + inertia * omega / dt;
         return 0.0;
     }
-    *friction = f;
+    int left;
+    double level = moving > 0.0 ? moving : 0.0;
+    double next = breakaway(start, psi, direction, limit, level, viscous, inertia, span, band, &left);
+    *friction = (span == dt && !left) ? direction * limit : psi - inertia * (next - omega) / dt;
     return next;
 }
 
