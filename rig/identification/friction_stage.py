@@ -253,11 +253,12 @@ def velocity_friction(parts: Sequence[SweepPart], model: HarmonicDriveModel) -> 
 # --- stage: breakaway -------------------------------------------------------------------------------------
 
 
-Event = tuple[float, float, float]
+Event = tuple[float, float, float, float]
 
 
 def breakaway_levels(run: Run, model: HarmonicDriveModel, offset_rad: float) -> list[Event]:
-    """(level, θ_m, direction) of every breakaway after a stick, where the cycle brackets it tightly.
+    """(level, bracket width, θ_m, direction) of every breakaway after a stick, where the cycle brackets
+    it tightly.
 
     Stuck, the motor's encoder reads one value; the drive holds the current over a cycle, so the motor
     breaks away in the cycle whose ψ_m = K_m·i_a − r·T_s first exceeds f_sm, and the reading changes at
@@ -286,7 +287,7 @@ def breakaway_levels(run: Run, model: HarmonicDriveModel, offset_rad: float) -> 
         low, high = direction * psi[b - 2], direction * psi[b - 1]
         level = 0.5 * (low + high)
         if level > 0 and 0 <= high - low <= BRACKET_MAX * level:
-            out.append((level - load_static, float(theta[b - 1]), direction))
+            out.append((level - load_static, high - low, float(theta[b - 1]), direction))
     return out
 
 
@@ -302,10 +303,10 @@ def breakaway(runs: Sequence[Run], model: HarmonicDriveModel, offset_rad: float)
     if law not in ("article", "coulomb_viscous", "stribeck"):
         out.notes.append(f"skipped: motor_law {law!r} breaks away by its bristles, not at a level")
         return out
-    if len(events) < 2:
-        out.notes.append(f"skipped: {len(events)} tightly bracketed breakaway(s) in the runs")
+    if not events:
+        out.notes.append("skipped: no tightly bracketed breakaway in the runs")
         return out
-    level, theta, direction = (np.array(column) for column in zip(*events, strict=True))
+    level, width, theta, direction = (np.array(column) for column in zip(*events, strict=True))
     name = "static_factor" if law == "article" else "f_sm"
 
     def static_levels(trial: HarmonicDriveModel) -> np.ndarray:
@@ -326,6 +327,15 @@ def breakaway(runs: Sequence[Run], model: HarmonicDriveModel, offset_rad: float)
             f"the breakaway measures the whole static level; the model's other static terms"
             f" (mean {np.mean(extra):.3g} N·m: Stribeck, asymmetry) are held"
         )
+    if ratio.size == 1:
+        # One event: the level is somewhere in its bracket (uniform), which its σ says.
+        scale = moving[0] if name == "static_factor" else 1.0
+        out.put(name, float(ratio[0]), float(width[0] / abs(scale) / math.sqrt(12.0)))
+        out.notes.append(
+            f"1 breakaway (ψ_m bracketed within {BRACKET_MAX:.0%}): {name} {ratio[0]:.4g}, σ from its"
+            " bracket (uniform within it)"
+        )
+        return out
     out.put(name, float(np.mean(ratio)), float(np.std(ratio, ddof=1) / math.sqrt(ratio.size)))
     out.metrics["spread"] = float(np.std(ratio, ddof=1))
     out.notes.append(
