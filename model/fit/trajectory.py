@@ -334,6 +334,11 @@ speeds, exact; with an 11-sample fit, b_l −10.9 % (27σ), k_v +3.5 %, static_f
 20 noise seeds (bench_identify), J_m −0.037 ± 0.023 % → −0.005 ± 0.067 %, RMS z 1.87 → 1.28."""
 
 
+def _smoothing_length(window_s: float, dt_s: float) -> int:
+    """Samples of the local cubic over `window_s`: odd, and at least the 5 a cubic's derivative needs."""
+    return max(5, round(window_s / dt_s) | 1)
+
+
 def with_smooth_velocities(run: Run, window_s: float = SMOOTHING_WINDOW_S, lag_s: float = 0.0) -> Run:
     """The run with ω_m, ω_l from a centred local cubic fit of the positions (Savitzky–Golay), taken
     `lag_s` before each sample: ω(t − lag) ≈ ω̂ − lag·α̂, α̂ from the same fit.
@@ -347,7 +352,7 @@ def with_smooth_velocities(run: Run, window_s: float = SMOOTHING_WINDOW_S, lag_s
     −0.000 % and −0.015 %, and half the residual (with the 11-sample fit of then).
     """
     dt = float(np.median(np.diff(run.t)))
-    length = max(5, round(window_s / dt) | 1)
+    length = _smoothing_length(window_s, dt)
     columns = dict(run.columns)
     for pos, vel in (("theta_m", "omega_m"), ("theta_l", "omega_l")):
         if pos in columns and len(columns[pos]) > length:
@@ -380,7 +385,7 @@ def speed_bands(run: Run, window_s: float = SMOOTHING_WINDOW_S) -> dict[str, flo
     J_l +0.022 → −0.028 %, σ 0.13 / 0.15-0.18 %).
     """
     dt = float(np.median(np.diff(run.t)))
-    length = max(5, round(window_s / dt) | 1)
+    length = _smoothing_length(window_s, dt)
     gain = float(np.linalg.norm(savgol_coeffs(length, 3, deriv=1, delta=dt)))
     bands = {}
     for pos, vel in (("theta_m", "omega_m"), ("theta_l", "omega_l")):
