@@ -57,3 +57,41 @@ def test_no_breakaway_is_a_skip_that_says_so(seed, monkeypatch):
     solved = friction_stage.breakaway(_runs(), seed, 0.0)
     assert "static_factor" not in solved.values
     assert solved.notes == ["skipped: no tightly bracketed breakaway in the runs"]
+
+
+def _events_at(seed: HarmonicDriveModel, factors: list[float], share: float) -> tuple[list, float]:
+    """Events whose levels are the given factors' at θ = 0.37 forward, each bracketed to `share` of its
+    level; with the moving magnitude M there (the level's change per unit of factor)."""
+    theta, direction = 0.37, 1.0
+    level = {
+        f: Plant(with_values(seed, {"static_factor": f})).breakaway_friction(theta, direction)[0]
+        for f in factors
+    }
+    once, twice = (
+        Plant(with_values(seed, {"static_factor": f})).breakaway_friction(theta, direction)[0]
+        for f in (1.0, 2.0)
+    )
+    return [(level[f], share * level[f], theta, direction) for f in factors], twice - once
+
+
+def test_tight_events_cannot_claim_less_than_their_brackets(seed, monkeypatch):
+    """Four events within 0.01 % of each other, each bracketed to 1.8 %: each level is known only to
+    its bracket (uniform, σ = w/√12), so the mean's σ is that over √4, not the spread's over √4 (which
+    is ~40× smaller here; a bench campaign missed by 5σ so)."""
+    factors = [1.0340, 1.0341, 1.0342, 1.0343]
+    events, moving = _events_at(seed, factors, 0.018)
+    monkeypatch.setattr(friction_stage, "breakaway_levels", lambda run, m, o: events)
+    solved = friction_stage.breakaway(_runs(), seed, 0.0)
+    bracket = math.sqrt(np.mean([(w / moving) ** 2 for _, w, _, _ in events]) / 12.0)
+    assert solved.values["static_factor"] == pytest.approx(np.mean(factors), rel=1e-9)
+    assert solved.std_errors["static_factor"] == pytest.approx(bracket / 2.0, rel=1e-9)
+    assert solved.std_errors["static_factor"] > 20 * np.std(factors, ddof=1) / 2.0
+
+
+def test_scattered_events_keep_their_spread(seed, monkeypatch):
+    """Events that disagree by more than their brackets say so through their spread: σ = s/√n."""
+    factors = [1.00, 1.04, 1.08]
+    events, _ = _events_at(seed, factors, 0.002)
+    monkeypatch.setattr(friction_stage, "breakaway_levels", lambda run, m, o: events)
+    solved = friction_stage.breakaway(_runs(), seed, 0.0)
+    assert solved.std_errors["static_factor"] == pytest.approx(0.04 / math.sqrt(3), rel=1e-6)

@@ -20,7 +20,7 @@ from scipy.stats import chi2
 from test_replay_continuous import FLOOR
 
 from model.fit.parameters import get_values
-from model.fit.trajectory import _window_robust_covariance, fit_trajectories
+from model.fit.trajectory import fit_trajectories, window_robust_covariance
 from model.params import HarmonicDriveModel
 from model.run import Run
 from rig.config import load_rig_config
@@ -126,7 +126,7 @@ def test_window_sigma_covers_a_parameter_few_windows_see():
             + 0.3 * rng.normal(0, 1, windows * per)
         )
         estimate, *_ = np.linalg.lstsq(jac, error, rcond=None)  # the truth is 0
-        cov = _window_robust_covariance(jac, error - jac @ estimate, groups, 1.0)
+        cov = window_robust_covariance(jac, error - jac @ estimate, groups, 1.0)
         z.append(estimate / np.sqrt(np.diag(cov)))
     covered = np.mean(np.abs(np.array(z)) <= 1.0, axis=0)
     assert covered[2] > 0.60

@@ -6,7 +6,7 @@ and replays the measured input over it. The cost is the article's "Euclidean nor
 and measured values", per channel scaled by the data's own spread so that radians and rad/s weigh alike.
 
 Uncertainty: the Gauss–Newton covariance at the optimum, windows taken as independent clusters (the
-sandwich, `_window_robust_covariance`). A parameter whose column of the scaled Jacobian is (nearly) a
+sandwich, `window_robust_covariance`). A parameter whose column of the scaled Jacobian is (nearly) a
 combination of the others, or whose standard error exceeds its own size, is reported as not determined
 by the data, and keeps its starting value.
 
@@ -77,7 +77,7 @@ def data_only_estimates(
     n = data_jac.shape[1]
     step = -np.linalg.pinv(data_jac.T @ data_jac) @ (data_jac.T @ data_fun)
     s2 = float(data_fun @ data_fun) / max(m - n, 1)
-    cov = _window_robust_covariance(data_jac, data_fun, problem.window_of_residual, s2)
+    cov = window_robust_covariance(data_jac, data_fun, problem.window_of_residual, s2)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     return {
         name: (float((x[i] + step[i]) * problem.x_scale[i]), float(se[i] * abs(problem.x_scale[i])))
@@ -580,7 +580,7 @@ def prior_weight(problem: TrajectoryProblem, jac: np.ndarray, fun: np.ndarray) -
     # The plain sandwich: c measures the windows' correlation, not how few windows see a parameter
     # (with the jackknife c took in the leverage of parameters few windows see: λ 1.4–1.9× on the bench).
     groups = problem.window_of_residual
-    clustered = np.diag(_window_robust_covariance(data_jac, data_fun, groups, s2, leave_one_out=False))
+    clustered = np.diag(window_robust_covariance(data_jac, data_fun, groups, s2, leave_one_out=False))
     ok = (white > 0) & np.isfinite(clustered) & (clustered > 0)
     inflation = float(np.median(clustered[ok] / white[ok])) if np.any(ok) else 1.0
     return math.sqrt(s2 * max(inflation, 1.0))
@@ -622,7 +622,7 @@ def _rms(residual: np.ndarray) -> float:
     return float(np.sqrt(np.mean(residual**2)))
 
 
-def _window_robust_covariance(
+def window_robust_covariance(
     jac: np.ndarray,
     fun: np.ndarray,
     groups: np.ndarray,
@@ -697,7 +697,7 @@ def _uncertainty(
         if is_weak:
             confounded |= np.abs(row) > 0.3
     try:
-        cov = _window_robust_covariance(
+        cov = window_robust_covariance(
             jac[:m], fun[:m], problem.window_of_residual, s2, jac[m:], problem.prior_weight**2
         )
         se = np.sqrt(np.clip(np.diag(cov), 0.0, None))

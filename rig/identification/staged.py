@@ -36,6 +36,7 @@ from model.params import HarmonicDriveModel
 from model.plant import Plant
 from model.run import Run
 from rig.identification.dynamics_stage import (
+    Held,
     Solved,
     frequency_response,
     kinematic_error,
@@ -99,6 +100,7 @@ class _Book:
         self.model = model
         self.estimates: dict[str, StageEstimate] = {}
         self.notes: dict[str, list[str]] = {}
+        self.joint: dict[str, Held] = {}  # by stage: values believed together, with their covariance
 
     def value(self, name: str) -> float:
         return get_values(self.model, [name])[name]
@@ -134,6 +136,9 @@ class _Book:
             self.flag(name, stage, f"{why}: held")
         for name, value in believed.items():
             self.estimates[name] = StageEstimate(name, value, solved.std_errors[name], stage, True)
+        self.joint.pop(stage, None)
+        if solved.joint is not None and all(name in believed for name in solved.joint.names):
+            self.joint[stage] = solved.joint
         self.update(believed)
 
     def update(self, values: dict[str, float]) -> None:
@@ -238,7 +243,9 @@ def _friction(runs: list[Run], book: _Book) -> None:
             f"s3 from these passes: {position.values['s3']:.5g} N·m (a check of the velocity stage's)"
         )
     book.accept("friction-position", position, ["s1", "s2", *FOURIER_NAMES], scales)
-    velocity = velocity_friction(sweep_parts(runs, book.model), book.model)
+    velocity = velocity_friction(
+        sweep_parts(runs, book.model), book.model, book.joint.get("friction-position")
+    )
     scales = {"f_dir": RELATIVE_SCALE * abs(book.value("s3"))} if book.model.direction_asymmetry else {}
     book.accept("friction-velocity", velocity, velocity_names(book.model), scales)
     if "asymmetry_nm" in velocity.metrics and book.model.direction_asymmetry is None:
