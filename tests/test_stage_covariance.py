@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from rig.identification.dynamics_stage import Held, Solved, carry_held, covariance
+from rig.identification.dynamics_stage import Held, Solved, carry_held, covariance, nonlinear_fit
 
 SAMPLES = 20_000
 REPLICAS = 300
@@ -105,3 +105,34 @@ def test_correlated_held_parameters_carry_their_covariance():
     g = -np.array([x @ z1, x @ z2]) / (x @ x)
     assert solved.std_errors["a"] == pytest.approx(math.sqrt(g @ cov @ g), rel=1e-9)
     assert solved.std_errors["a"] < 0.5 * math.sqrt(g**2 @ np.diag(cov))
+
+
+def _line_fit_coverage(points: int, replicas: int, seed: int) -> float:
+    """Share of replicas of y = 1 + 2·x + N(0, 0.1²) at `points` points whose ±1σ of the slope (from
+    `nonlinear_fit`) holds the truth."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0.0, 1.0, points)
+    covered = 0
+    for _ in range(replicas):
+        y = 1.0 + 2.0 * x + 0.1 * rng.standard_normal(points)
+        solved = nonlinear_fit(lambda p, y=y: p[0] + p[1] * x - y, ["a", "b"], [0.5, 1.0], [1.0, 1.0])
+        covered += abs(solved.values["b"] - 2.0) <= solved.std_errors["b"]
+    return covered / replicas
+
+
+def test_few_degrees_of_freedom_still_cover_68_percent():
+    """Four points, two parameters: the slope's error over s²-based σ follows t₂, and ±1σ would cover
+    P(|t₂| ≤ 1) = 57.7 %; widened by t₂(84.1 %) = 1.32 it covers 68.3 %. 1500 replicas: binomial sd
+    1.2 points, tolerance 4 sd."""
+    assert _line_fit_coverage(4, 1500, 11) == pytest.approx(0.683, abs=0.048)
+
+
+def test_no_degree_of_freedom_left_is_no_standard_error():
+    """Two points, two parameters: the line passes through both, the residual is zero and says nothing
+    of the noise: the standard errors are infinite, not zero (a zero would count as determined)."""
+    x = np.array([0.0, 1.0])
+    solved = nonlinear_fit(
+        lambda p: p[0] + p[1] * x - np.array([1.0, 3.1]), ["a", "b"], [0.0, 0.0], [1.0, 1.0]
+    )
+    assert solved.values["b"] == pytest.approx(2.1, rel=1e-6)
+    assert math.isinf(solved.std_errors["a"]) and math.isinf(solved.std_errors["b"])

@@ -23,6 +23,7 @@ import numpy as np
 from numba import njit
 from scipy.interpolate import CubicSpline
 from scipy.optimize import least_squares
+from scipy.stats import t as student_t
 
 from model import kernel as k
 from model.fit.parameters import get_values, with_values
@@ -147,6 +148,16 @@ def linear_fit(design: np.ndarray, y: np.ndarray, serial: bool = False) -> tuple
     return beta, covariance(design, y - design @ beta, serial)
 
 
+NORMAL_ONE_SIGMA = 0.8413447460685429
+"""Φ(1): the share of the normal law below +1σ."""
+
+
+def one_sigma_t(dof: int) -> float:
+    """Student's t at the normal law's 1σ quantile (84.1 %): the factor that makes ±σ from an estimated
+    variance with `dof` degrees of freedom cover 68.3 %."""
+    return float(student_t.ppf(NORMAL_ONE_SIGMA, dof))
+
+
 def nonlinear_fit(
     residual: Callable[[np.ndarray], np.ndarray],
     names: Sequence[str],
@@ -156,7 +167,14 @@ def nonlinear_fit(
     loss: str = "linear",
     f_scale: float = 1.0,
 ) -> Solved:
-    """Least squares (scipy) over parameters in units of `scale`; standard errors from s²·(JᵀJ)⁻¹."""
+    """Least squares (scipy) over parameters in units of `scale`; standard errors from s²·(JᵀJ)⁻¹.
+
+    s² is estimated from the residual with m − n degrees of freedom, so the estimate's error over its
+    standard error follows Student's t, not the normal law: with few (4 windows, 3 parameters: t₁) a
+    ±1σ interval covers the truth 50 % of the time, not 68 %. The standard errors are widened by
+    t_(m−n)(84.1 %) so that it does (×1.84 at one degree of freedom, ×1.02 at 30); with none left
+    (m ≤ n) the residual says nothing of the noise, and they are infinite.
+    """
     scales = np.asarray(scale, dtype=np.float64)
     low = np.full(len(names), -np.inf) if lower is None else np.asarray(lower) / scales
     start = np.maximum(np.asarray(x0, dtype=np.float64) / scales, low)
@@ -164,9 +182,12 @@ def nonlinear_fit(
         lambda z: residual(z * scales), start, bounds=(low, np.inf), loss=loss, f_scale=f_scale
     )
     m, n = result.jac.shape
-    s2 = 2.0 * float(result.cost) / max(m - n, 1)
-    cov = np.linalg.pinv(result.jac.T @ result.jac) * s2
-    se = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scales
+    if m <= n:
+        se = np.full(n, np.inf)
+    else:
+        s2 = 2.0 * float(result.cost) / (m - n)
+        cov = np.linalg.pinv(result.jac.T @ result.jac) * s2
+        se = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scales * one_sigma_t(m - n)
     out = Solved()
     for name, value, err in zip(names, result.x * scales, se, strict=True):
         out.put(name, value, err)
