@@ -14,6 +14,7 @@ very same rows (`SweepPart.mean`).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -27,7 +28,7 @@ from scipy.stats import t as student_t
 
 from model import kernel as k
 from model.fit.parameters import get_values, with_values
-from model.fit.trajectory import window_robust_covariance
+from model.fit.trajectory import SPEED_BAND_SIGMAS, position_noise, window_robust_covariance
 from model.params import HarmonicDriveModel
 from model.plant import kernel_vectors
 from model.run import Run
@@ -166,8 +167,11 @@ def nonlinear_fit(
     lower: Sequence[float] | None = None,
     loss: str = "linear",
     f_scale: float = 1.0,
+    unequal_rows: bool = False,
 ) -> Solved:
-    """Least squares (scipy) over parameters in units of `scale`; standard errors from s²·(JᵀJ)⁻¹.
+    """Least squares (scipy) over parameters in units of `scale`; standard errors from s²·(JᵀJ)⁻¹, or
+    with `unequal_rows` (independent rows whose noise differs from row to row) the sandwich with each row
+    its own cluster, in its leave-one-out form (`window_robust_covariance`; HC3 in econometrics).
 
     s² is estimated from the residual with m − n degrees of freedom, so the estimate's error over its
     standard error follows Student's t, not the normal law: with few (4 windows, 3 parameters: t₁) a
@@ -186,7 +190,10 @@ def nonlinear_fit(
         se = np.full(n, np.inf)
     else:
         s2 = 2.0 * float(result.cost) / (m - n)
-        cov = np.linalg.pinv(result.jac.T @ result.jac) * s2
+        if unequal_rows and loss == "linear":
+            cov = window_robust_covariance(result.jac, result.fun, np.arange(m), s2)
+        else:
+            cov = np.linalg.pinv(result.jac.T @ result.jac) * s2
         se = np.sqrt(np.clip(np.diag(cov), 0.0, None)) * scales * one_sigma_t(m - n)
     out = Solved()
     for name, value, err in zip(names, result.x * scales, se, strict=True):
@@ -319,6 +326,30 @@ def span_motion(run: Run, column: str, edges: np.ndarray, at: np.ndarray) -> Spa
     return SpanMotion(
         np.asarray(spline(at)), np.asarray(spline(at, 1)), np.diff(spline(edges, 1)) / np.diff(edges)
     )
+
+
+@functools.cache
+def spline_speed_gain() -> float:
+    """σ of `span_motion`'s speed per unit of white position noise per sample period: the rms, over the
+    instants inside a span, of the norm of the cubic spline's derivative weights (1.57 on uniform
+    samples; the measured speed noise of a 2 µrad load sensor at 1 kHz is 3.2 mrad/s)."""
+    knots = np.arange(41, dtype=np.float64)
+    spline = CubicSpline(knots, np.eye(knots.size))
+    at = 19.5 + (np.arange(SPAN_INSTANTS_MAX) + 0.5) / SPAN_INSTANTS_MAX
+    return float(np.sqrt(np.mean(np.sum(spline(at, 1) ** 2, axis=1))))
+
+
+def sign_seen(part: SweepPart, load: SpanMotion) -> np.ndarray:
+    """Per window: whether the load's speed stays clear of zero, by SPEED_BAND_SIGMAS of its noise, at
+    every instant inside it. Where it does not, the noise flips the sign of F_l at some instants, and
+    each flip takes 2·f_cl off the window's mean friction: on the seed model the load slows to
+    0.5 mrad/s in the kinematic error's cycle at ±5 rad/s, and a 2 µrad sensor (3.2 mrad/s of speed
+    noise) took those windows' mean F_l 1–1.8 mN·m low, in every noise seed (ideal: ≤ 0.05 mN·m)."""
+    period_s = 1.0 / part.run.sample_rate_hz
+    band = SPEED_BAND_SIGMAS * spline_speed_gain() * position_noise(part.run["theta_l"]) / period_s
+    direction = np.sign(part.run["setpoint"])
+    near = np.mean(direction[:, None] * load.speed < band, axis=1)
+    return np.asarray(part.mean(near) == 0.0)
 
 
 def tapered(column: np.ndarray, rows: int) -> np.ndarray:
@@ -512,6 +543,11 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
     (A −2.4 % gave f_cl −0.44 %, b_l +0.8 %); fitted, it costs f_cl a wider σ instead. J_l likewise:
     the ringing load's J_l·Δω_l/T differs from window to window, and held at the FRF's J_l (0.6 % off)
     it moved f_cl by +0.13 %; the windows see J_l to ~0.05 %.
+
+    Windows where the load's speed comes within its noise of zero are left out (`sign_seen`), and the
+    standard errors are the rows' sandwich (`nonlinear_fit(unequal_rows=True)`): the windows' noise
+    differs a lot (the ringing after a reversal, the ripple at speed), and s² over all of them had put
+    f_cl's σ at 1.8× its spread over 20 noise seeds and K_s's at 2× (now 1.1×, 1.5×).
     """
     out = Solved()
     used = [part for part in parts if "theta_l" in part.run and np.any(part.steady)]
@@ -553,6 +589,8 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
             wave = np.zeros_like(at) if ke is None else np.sin(ke.k * motor.angle + ke.phi)
             spans[id(part.run)] = (deflection_of(model, motor.angle, load.angle), wave, load)
 
+    clear = [part.steady & sign_seen(part, spans[id(part.run)][2]) for part in used]
+    unseen = sum(int(np.count_nonzero(part.steady & ~ok)) for part, ok in zip(used, clear, strict=True))
     loads_nm = [window_means(part, part.run["tau_ext"]) for part in used]
     accels = [window_means(part, spans[id(part.run)][2].accel) for part in used]
     scale_nm = 1e-3  # residuals in mN·m: the unit of the fit's conditioning, not of its result
@@ -573,10 +611,8 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
         }
         return np.concatenate(
             [
-                ((window_means(part, balance[id(part.run)]) - tau - extra["J_l"] * accel) / scale_nm)[
-                    part.steady
-                ]
-                for part, tau, accel in zip(used, loads_nm, accels, strict=True)
+                ((window_means(part, balance[id(part.run)]) - tau - extra["J_l"] * accel) / scale_nm)[ok]
+                for part, tau, accel, ok in zip(used, loads_nm, accels, clear, strict=True)
             ]
         )
 
@@ -588,8 +624,9 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
         [*start, *starts],
         [*(abs(v) or 1.0 for v in start), *scales],
         lower=[1e-9 if name.startswith("K") else 0.0 for name in names] + list(lows),
+        unequal_rows=True,
     )
-    windows = sum(int(np.count_nonzero(part.steady)) for part in used)
+    windows = sum(int(np.count_nonzero(ok)) for ok in clear)
     for name in nuisance:
         solved.metrics[name] = solved.values.pop(name)
         solved.metrics[name + "_std"] = solved.std_errors.pop(name)
@@ -600,6 +637,12 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
         f"mean spring torque = τ_ext + F_l + J_l·Δω_l/T over {windows} steady windows, each sample's span"
         f" seen at instants between samples, the windows' edges ramped over {TAPER_S * 1e3:g} ms;"
         f" fitted with them, not used: {seen}"
+        + (
+            f"; {unseen} window(s) left out where the load's speed came within {SPEED_BAND_SIGMAS:g}σ of its"
+            " noise of zero (the sign of its friction is not seen there)"
+            if unseen
+            else ""
+        )
     )
     return solved
 
