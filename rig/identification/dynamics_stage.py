@@ -73,10 +73,6 @@ class Held:
     values: np.ndarray
     covariance: np.ndarray
 
-    def subset(self, names: Sequence[str]) -> Held:
-        index = [self.names.index(name) for name in names]
-        return Held(list(names), self.values[index], self.covariance[np.ix_(index, index)])
-
 
 def carry_held(solved: Solved, residual: Callable[[dict[str, float]], np.ndarray], held: Held) -> None:
     """Widen `solved`'s standard errors by the errors of the parameters it held (the delta method of a

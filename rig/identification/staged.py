@@ -20,7 +20,8 @@ C·(1 − k_v·v_c) + C·k_v·|ω|: s3 and k_v absorb it), a0 (a constant like s
 C·k_v), K_m and r (given), f_sl, and whatever a stage had no run for. Everything else whose standard
 error exceeds a quarter of its size (or, for coefficients that may be zero, of a natural scale) is
 flagged the same way. A standard error is that of its stage's own least squares, the other stages'
-values held: it does not carry their errors (A carries J_l's, for one).
+values held; it carries their errors where they were measured to matter (the velocity stage carries the
+position stage's s1, s2 with their covariance: `carry_held`), not elsewhere (A carries J_l's, for one).
 """
 
 from __future__ import annotations
