@@ -39,6 +39,7 @@ from model.params import HarmonicDriveModel
 from model.run import Run
 from rig.config import RigConfig, Sensors, load_rig_config
 from rig.identification.dynamics_stage import (
+    CARRIER_TURNS,
     Solved,
     SpanMotion,
     SweepPart,
@@ -46,6 +47,7 @@ from rig.identification.dynamics_stage import (
     load_friction_steady,
     runs_of,
     sign_seen,
+    slow_motion,
     span_instants,
     span_motion,
     spline_speed_gain,
@@ -140,6 +142,26 @@ def test_kinematic_error_amplitude_is_unbiased(
     solved = kinematic_error(runs_of(runs, "position-friction"), seed)
     assert_within(solved, seed, ["A"])
     assert abs(solved.values["phi"] - seed.kinematic_error.phi) <= K_SIGMA * solved.std_errors["phi"]
+    # Its σ is the noise's, not a misfit's: the error's wave locked to a straight line and to its own
+    # harmonics only left 1.9e-5 rad of residual (the speed's drift over a pass, and the sidebands of the
+    # friction's speed ripple) and σ(A) 1.0 % against a spread of 0.04 % over 20 noise seeds; with the
+    # slow carrier and the sidebands 0.05 % (sizes: 4× margin, 5× below the old).
+    assert solved.std_errors["A"] / seed.kinematic_error.A < 0.002
+
+
+def test_the_slow_motion_follows_the_drift_and_leaves_the_ripple():
+    """θ = ω·t + a slow drift (period 30 s) + a ripple at 1 and 2 per turn, ω = 5 rad/s over 30 s:
+    the carrier with knots two turns apart keeps the drift to 1 % of its size and the ripple to 2 %."""
+    t = np.arange(0.0, 30.0, 1e-3)
+    omega = 5.0
+    drift = 0.05 * np.sin(2 * np.pi * t / 30.0)
+    ripple = 2e-3 * np.sin(omega * t) + 1e-3 * np.cos(2 * omega * t)
+    slow = slow_motion(t, omega * t + drift + ripple, 2 * CARRIER_TURNS * np.pi / omega)
+    inner = slice(2000, -2000)  # a spline's ends see one side only
+    assert np.max(np.abs(slow - omega * t - drift)[inner]) < 0.01 * 0.05 + 0.02 * 3e-3
+    assert np.std((omega * t + drift + ripple - slow)[inner]) == pytest.approx(
+        np.std(ripple[inner]), rel=0.02
+    )
 
 
 def test_windows_where_the_noise_flips_the_load_friction_are_left_out(clean_runs: list[Run], seed):
