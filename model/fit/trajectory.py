@@ -23,6 +23,7 @@ import copy
 import itertools
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -432,7 +433,13 @@ class TrajectoryProblem:
     """Residuals of a model against runs over shooting windows, for a set of free parameters."""
 
     def __init__(
-        self, model: HarmonicDriveModel, runs: list[Run], names: list[str], window_s: float, dt_s: float
+        self,
+        model: HarmonicDriveModel,
+        runs: list[Run],
+        names: list[str],
+        window_s: float,
+        dt_s: float,
+        channels: Sequence[str] = tuple(CHANNELS),
     ) -> None:
         self.model = model
         self.names = names
@@ -443,17 +450,17 @@ class TrajectoryProblem:
             step, continuous = replay_scheme(run, dt_s)
             bands = speed_bands(run) if continuous else None
             run = with_smooth_velocities(run, lag_s=replay_step(run, step) / 2)
-            channels = [c for c in CHANNELS if c in run]
+            seen = [c for c in channels if c in run]
             pieces = shooting_windows(run, window_s)
-            scales = _channel_scales(run, channels, pieces)
+            scales = _channel_scales(run, seen, pieces)
             self.windows += [
                 _Window(
                     piece,
-                    channels,
+                    seen,
                     scales,
                     float(piece.t[0] - run.t[0]),
                     step,
-                    _Replay.of(piece, channels, scales, step, continuous, bands)
+                    _Replay.of(piece, seen, scales, step, continuous, bands)
                     if piece.input_column is not None
                     else None,
                 )
