@@ -15,7 +15,7 @@ import scipy.io
 from hdrig_testing.independent_plant import Controller, IndependentRig, lab_profile, single_axis_profile
 from model.fit.inverse import inverse_model_fit
 from model.fit.parameters import with_values
-from model.params import load_model, parse_model
+from model.params import HarmonicDriveModel, load_model, parse_model
 from model.run import Run
 from model.simulate import simulate
 from rig.core import actions
@@ -174,17 +174,25 @@ def test_a_csv_run_without_metadata_fits_from_the_command_line(lab_run: Run, tmp
     assert "theta_l" in doc["parameters"]["K_s"]["note"]
 
 
-def test_a_breakaway_level_stuck_in_a_local_minimum_is_fitted_again():
-    """An open-loop current sine of seed-rigid (model.simulate, 6 s, 6 A at 0.5 Hz: the motor sticks
-    at every reversal), as a lab's file: t, i_cmd and θ_m through a 14-bit encoder. From a start with
-    s3 −17 % and J_m +27 %, the trajectory fit settled at static_factor 0.75 ± 0.072 (truth 1.0388) at an
-    RMS of 0.000501, against 0.000460 from the truth's side: the level at a few static/moving ratios is
-    tried, and the fit run again from the lowest. The truth then within 3σ, as any single draw."""
+@pytest.fixture(scope="module")
+def open_loop_sine() -> tuple[Run, HarmonicDriveModel]:
+    """seed-rigid driven by an open-loop current sine (model.simulate, 6 s, 6 A at 0.5 Hz: the motor
+    sticks at every reversal), and a start with s3 −17 % and J_m +27 %."""
     truth = load_model("seed-rigid")
     sim = simulate(truth, "sine:amp=6,freq=0.5", 6.0, mode="current")
+    return sim, with_values(truth, {"s3": 0.06, "J_m": 7.0e-5})
+
+
+def test_a_breakaway_level_stuck_in_a_local_minimum_is_fitted_again(
+    open_loop_sine: tuple[Run, HarmonicDriveModel],
+):
+    """The open-loop sine as a lab's file: t, i_cmd and θ_m through a 14-bit encoder. From the start, the
+    trajectory fit settled at static_factor 0.75 ± 0.072 (truth 1.0388) at an
+    RMS of 0.000501, against 0.000460 from the truth's side: the level at a few static/moving ratios is
+    tried, and the fit run again from the lowest. The truth then within 3σ, as any single draw."""
+    sim, start = open_loop_sine
     count = 2 * math.pi / 16384
     lab = Run({"t": sim.t, "i_cmd": sim["i_cmd"], "theta_m": np.round(sim["theta_m"] / count) * count}, {})
-    start = with_values(truth, {"s3": 0.06, "J_m": 7.0e-5})
     result = identify([lab.validate()], start)
     row = {p.name: p for p in result.parameters}["static_factor"]
     assert row.identifiable and row.uncertainty is not None
@@ -192,14 +200,14 @@ def test_a_breakaway_level_stuck_in_a_local_minimum_is_fitted_again():
     assert any("local minimum" in note for note in result.notes)
 
 
-def test_a_rigid_model_is_fitted_on_theta_m_whatever_other_angles_the_file_has():
+def test_a_rigid_model_is_fitted_on_theta_m_whatever_other_angles_the_file_has(
+    open_loop_sine: tuple[Run, HarmonicDriveModel],
+):
     """A rigid model's θ_l is r·θ_m plus the kinematic error: nothing its dynamics add. Fitted on it as
     well, the small spread that scales it magnified the mismatch between the continuous input and its
     samples (J_m +1.4 %, 13σ, on seed-rigid's exact `simulate` output written as CSV). The file with
     θ_l now gives what the file without it gives."""
-    truth = load_model("seed-rigid")
-    sim = simulate(truth, "sine:amp=6,freq=0.5", 6.0, mode="current")
-    start = with_values(truth, {"s3": 0.06, "J_m": 7.0e-5})
+    sim, start = open_loop_sine
     plain = {"t": sim.t, "i_cmd": sim["i_cmd"], "theta_m": sim["theta_m"]}
     fits = [
         identify([Run(columns, {}).validate()], start)
