@@ -23,6 +23,7 @@ import contextlib
 import json
 import os
 import sqlite3
+import sys
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -202,6 +203,8 @@ class Catalog:
             Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
         self.engine = _engine(self.url)
         self._migrate()
+        if self.is_sqlite and self.url.database not in (None, "", ":memory:"):
+            _guard(Path(str(self.url.database)))
 
     @contextlib.contextmanager
     def _transaction(self, write: bool) -> Iterator[Connection]:
@@ -271,6 +274,79 @@ class Catalog:
                 config.attributes["connection"] = conn
                 command.upgrade(config, "head")
         _migrated.add(key)
+
+
+# ---- the catalog's own files: opened by SQLite only --------------------------------------------------
+#
+# SQLite holds POSIX (fcntl) locks on its file; POSIX drops every lock a process holds on a file when that
+# process closes *any* descriptor of it. One open()/close() of `catalog.sqlite` by this process (a model
+# file, a run file, an export named as the catalog) silently dropped this process's locks, the next
+# process to close the catalog believed itself its last user and deleted the WAL and SHM under us, and
+# from then on this process and the others wrote to different catalogs. So this process refuses to open
+# the files of a catalog it has open, whoever asks: an audit hook on every Python `open` (builtins, io,
+# os), and `refuse_own_file` for the readers that open files outside Python (pyarrow).
+
+SQLITE_SIDE_FILES = ("-wal", "-shm", "-journal")
+_own_files: dict[tuple[int, int], str] = {}
+"""(st_dev, st_ino) of each SQLite catalog this process opened → its path."""
+
+
+class OwnFileError(StoreError):
+    """A file named as input (a model, a run, an export) is a file of the run catalog itself."""
+
+
+def _identity(path: str) -> tuple[int, int] | None:
+    try:
+        found = os.stat(path)  # a stat opens nothing, so it drops no lock
+    except (OSError, ValueError):
+        return None
+    return (found.st_dev, found.st_ino)
+
+
+def _guard(path: Path) -> None:
+    identity = _identity(str(path))
+    if identity is not None:
+        _own_files[identity] = str(path)
+
+
+def own_catalog_file(path: str | bytes | os.PathLike[Any]) -> str | None:
+    """The catalog (open in this process) that `path` is, or whose WAL/SHM/journal it is; else None. By
+    the file's identity, so a link or another spelling of the path is found too."""
+    if not _own_files:
+        return None
+    name = os.fsdecode(path)
+    candidates = [name] + [name[: -len(s)] for s in SQLITE_SIDE_FILES if name.endswith(s)]
+    for candidate in candidates:
+        identity = _identity(candidate)
+        registered = _own_files.get(identity) if identity is not None else None
+        if registered is None:
+            continue
+        if _identity(registered) != identity:  # that catalog is gone and its inode reused: not ours
+            _own_files.pop(identity, None)
+            continue
+        return registered
+    return None
+
+
+def refuse_own_file(path: str | os.PathLike[str], what: str) -> None:
+    """A one-line error when `path` (given as `what`: a model file, a run file...) is a file of a catalog
+    this process has open: reading it would drop SQLite's locks."""
+    if own_catalog_file(path) is not None:
+        raise OwnFileError(f"{path}: a file of the run catalog, not a {what}")
+
+
+def _refuse_opening_own_files(event: str, args: tuple[Any, ...]) -> None:
+    if event != "open" or not _own_files:
+        return
+    path = args[0] if args else None
+    if isinstance(path, (str, bytes, os.PathLike)) and own_catalog_file(path) is not None:
+        raise OwnFileError(
+            f"{os.fsdecode(path)}: a file of the run catalog; it is opened only as the catalog"
+            " (name a model, a run or an export file outside it)"
+        )
+
+
+sys.addaudithook(_refuse_opening_own_files)
 
 
 _MIGRATION_LOCK = 0x68647269  # 'hdri': the advisory lock key of hdrig's migrations
