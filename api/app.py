@@ -664,21 +664,21 @@ def keys(request: Request, who: Admin) -> list[KeyInfo]:
     "/keys", response_model=NewKey, status_code=201, tags=["admin"], summary="make a key (shown once)"
 )
 def create_key(body: KeyRequest, request: Request, who: Admin) -> NewKey:
-    store = _store(request)
-    token = access.create_key(store, body.role, body.name)
-    name = next(found[0] for found in [access.authenticate(store, token)] if found)
-    _audit(request, who, "key.create", name, str(body.role))
-    return NewKey(name=name, role=body.role, key=token)
+    name, token = access.make_key(_store(request), body.role, body.name, who.name, who.role, door="api")
+    return NewKey(name=name, role=body.role, key=token)  # audited by make_key, in its transaction
 
 
-@router.delete("/keys/{name}", response_model=KeyInfo, tags=["admin"], summary="revoke a key")
+@router.delete(
+    "/keys/{name}", response_model=KeyInfo, tags=["admin"], summary="revoke a key (409: the last admin key)"
+)
 def revoke_key(name: Annotated[str, PathParam(max_length=200)], request: Request, who: Admin) -> KeyInfo:
     store = _store(request)
     if name not in {key.name for key in access.list_keys(store)}:
-        raise ProblemError(404, f"unknown key name {name!r}")
-    info = access.revoke_key(store, name)
-    _audit(request, who, "key.revoke", name)
-    return info
+        raise ProblemError(404, f"unknown key name {name[:80]!r}")
+    try:  # audited by revoke_key, in its transaction
+        return access.revoke_key(store, name, who.name, who.role, door="api")
+    except access.KeyConflictError as exc:
+        raise ProblemError(409, str(exc)) from None
 
 
 @router.get("/audit", response_model=list[AuditEntry], tags=["admin"], summary="who did what, when")

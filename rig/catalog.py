@@ -69,6 +69,7 @@ runs = sa.Table(
     sa.Column("analysis", sa.Text),
     sa.Column("unit", sa.Text),  # the gear's serial number (the rig file's `unit:`, or the run's own)
     sa.Column("operator", sa.Text),  # the API key's name, or the OS user of a command line
+    sa.Column("progress", sa.Float),  # fraction of the plan recorded, kept when a run ends early
 )
 
 checkpoints = sa.Table(
@@ -93,9 +94,10 @@ keys = sa.Table(
     metadata,
     sa.Column("name", sa.Text, nullable=False, unique=True),
     sa.Column("role", sa.Text, nullable=False),
-    sa.Column("hash", sa.Text, nullable=False),
+    sa.Column("hash", sa.Text, nullable=False),  # salted scrypt of the key's SHA-256 (rig.core.access)
     sa.Column("created", sa.Text, nullable=False),
     sa.Column("revoked", sa.Text),
+    sa.Column("key_id", sa.Text, unique=True),  # the key's public prefix; None for keys made before 0004
 )
 
 audit = sa.Table(

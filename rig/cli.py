@@ -502,9 +502,7 @@ def cmd_keys_revoke(args: argparse.Namespace) -> int:
     from rig.store import RunStore
 
     _here_only(args)
-    store = RunStore()
-    access.revoke_key(store, args.name)
-    access.audit(store, None, None, "key.revoke", args.name, "from the command line")
+    access.revoke_key(RunStore(), args.name, door="command line")  # audited in the same transaction
     _say(f"hdrig: key {args.name} revoked")
     return 0
 
@@ -545,7 +543,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     store = RunStore()
     host = "localhost" if args.host in ("127.0.0.1", "::1") else args.host
     if not access.has_keys(store):
-        key = access.create_key(store, access.Role.ADMIN, "admin")
+        key = access.create_key(store, access.Role.ADMIN, "admin", door="first start of hdrig serve")
         _say(f"hdrig: no API key in {store.home}: made an admin key, shown only this once:\n    {key}")
         _say(f"hdrig: open http://{host}:{args.port}/ and log in with it (or: Authorization: Bearer <key>)")
     else:
