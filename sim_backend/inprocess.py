@@ -11,7 +11,7 @@ from model.params import HarmonicDriveModel, load_model
 from model.plant import Plant
 from rig.config import RigConfig
 from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig
-from sim_backend.simulated_drive import SimulatedDrive
+from sim_backend.simulated_drive import TRUTH_COLUMNS, SimulatedDrive
 
 
 class SimRig(Rig):
@@ -49,6 +49,19 @@ class SimRig(Rig):
         return None  # nothing runs between cycles; run_segment sees the stop request
 
     supports_feedforward = True
+
+    def record_truth(self, on: bool = True) -> None:
+        """Keep the plant's true states and torques of every cycle from now on, beside the samples
+        (`truth()`); off by default, when the loop records nothing more. For tests."""
+        self.drive.record_truth(on)
+
+    def truth(self) -> dict[str, np.ndarray]:
+        """The truth recorded since `record_truth`: TRUTH_COLUMNS of `sim_backend.simulated_drive`, one
+        row per cycle run, `t` equal to the samples' `t` [SI units, motor side as the samples]."""
+        if self.drive.truth is None:
+            raise RuntimeError("truth is not being recorded: call record_truth() first")
+        rows = np.concatenate([*self.drive.truth, np.empty((0, len(TRUTH_COLUMNS)))])
+        return {name: rows[:, i] for i, name in enumerate(TRUTH_COLUMNS)}
 
     def _run_cycles(
         self,

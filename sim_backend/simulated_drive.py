@@ -38,6 +38,71 @@ D_K_B, D_R, D_SUPPLY, D_QUANTUM, D_FILTER_ALPHA, D_CURRENT_NOISE, D_LOAD_NOISE, 
 M_THETA_PREV, M_OMEGA = range(2)
 _NO_FEEDFORWARD = np.empty((0, N_FF_COLUMNS))
 
+# The plant's truth per cycle (opt-in, `SimulatedDrive.record_truth`): the states at the cycle's start (as
+# the sample is taken), the torques averaged over the cycle's substeps (their mean is what changes the
+# speeds over the cycle), and the share of substeps each body spent stuck (velocity held at exactly 0).
+TRUTH_COLUMNS = (
+    "t",
+    "theta_m",
+    "omega_m",
+    "theta_l",
+    "omega_l",
+    "i_a",
+    "tau_m",
+    "tau_ext",
+    "t_s",
+    "f_m",
+    "f_l",
+    "stuck_m",
+    "stuck_l",
+)
+(
+    T_T,
+    T_THETA_M,
+    T_OMEGA_M,
+    T_THETA_L,
+    T_OMEGA_L,
+    T_I_A,
+    T_TAU_M,
+    T_TAU_EXT,
+    T_T_S,
+    T_F_M,
+    T_F_L,
+    T_STUCK_M,
+    T_STUCK_L,
+) = range(len(TRUTH_COLUMNS))
+_NO_TRUTH = np.empty((0, len(TRUTH_COLUMNS)))
+
+
+@njit(cache=True)
+def _truth_row(rows: np.ndarray, t: float, truth_row: np.ndarray) -> None:
+    """One cycle's truth from its substeps' kernel rows (model.kernel's OUT_ columns)."""
+    n = rows.shape[0]
+    truth_row[T_T] = t
+    truth_row[T_THETA_M] = rows[0, k.OUT_THETA_M]
+    truth_row[T_OMEGA_M] = rows[0, k.OUT_OMEGA_M]
+    truth_row[T_THETA_L] = rows[0, k.OUT_THETA_L]
+    truth_row[T_OMEGA_L] = rows[0, k.OUT_OMEGA_L]
+    for column, out in (
+        (T_I_A, k.OUT_I_A),
+        (T_TAU_M, k.OUT_TAU_M),
+        (T_TAU_EXT, k.OUT_TAU_EXT),
+        (T_T_S, k.OUT_T_S),
+        (T_F_M, k.OUT_F_M),
+        (T_F_L, k.OUT_F_L),
+    ):
+        total = 0.0
+        for j in range(n):
+            total += rows[j, out]
+        truth_row[column] = total / n
+    stuck_m = 0
+    stuck_l = 0
+    for j in range(n):
+        stuck_m += rows[j, k.OUT_OMEGA_M] == 0.0
+        stuck_l += rows[j, k.OUT_OMEGA_L] == 0.0
+    truth_row[T_STUCK_M] = stuck_m / n
+    truth_row[T_STUCK_L] = stuck_l / n
+
 
 @njit(cache=True)
 def run_cycles(
@@ -59,17 +124,22 @@ def run_cycles(
     out: np.ndarray,
     ff: np.ndarray,
     ff_band: float,
+    truth: np.ndarray,
 ) -> tuple[int, int]:
     """Run len(setpoint) cycles from time t0; fill `out` rows (SAMPLE_COLUMNS). Returns (rows, abort).
 
     `ff`: a feed-forward track's rows for these cycles (position mode), or an empty array for none.
+    `truth`: rows of TRUTH_COLUMNS to fill per cycle, or an empty array for none (the kernel then writes
+    one row a cycle, as without it; with it, one a substep: the same steps either way).
     """
     has_ff = ff.shape[0] > 0
+    record = truth.shape[0] > 0
     period = drive[D_PERIOD]
     quantum = drive[D_QUANTUM]
     held = np.empty(substeps)
     load = np.empty(1)
-    row_buf = np.empty((1, k.N_OUT))
+    decim = 1 if record else substeps
+    row_buf = np.empty((substeps if record else 1, k.N_OUT))
     for c in range(setpoint.shape[0]):
         theta = x[k.X_THETA_M]
         theta_meas = math.floor(theta / quantum + 0.5) * quantum if quantum > 0.0 else theta
@@ -124,7 +194,9 @@ def run_cycles(
 
         held[:] = value
         load[0] = tau_ext[c]
-        k.integrate(p, flags, x, plant_mode, held, load, dt, substeps, row_buf)
+        k.integrate(p, flags, x, plant_mode, held, load, dt, decim, row_buf)
+        if record:
+            _truth_row(row_buf, t0 + c * period, truth[c])
     return setpoint.shape[0], NO_ABORT
 
 
@@ -162,7 +234,13 @@ class SimulatedDrive:
         self.control_state = np.zeros(N_CONTROL_STATE)
         self.sensor_state = np.zeros(2)
         self.rng = np.random.default_rng(sensors.seed)
+        self.truth: list[np.ndarray] | None = None
+        """Blocks of TRUTH_COLUMNS rows, one per cycle run, while `record_truth` is on (tests)."""
         self.reset_loops()
+
+    def record_truth(self, on: bool = True) -> None:
+        """Keep the plant's true states and torques of every cycle from now on (off: none, the default)."""
+        self.truth = [] if on else None
 
     def reset_loops(self) -> None:
         """Clear integrators and filters, as a drive does on enable; no bump in the speed estimate."""
@@ -196,6 +274,7 @@ class SimulatedDrive:
             self.control_state[S_RATE] = 0.0
             self._compensating = feedforward is not None
         out = np.empty((n, len(SAMPLE_COLUMNS)))
+        truth = np.empty((n, len(TRUTH_COLUMNS))) if self.truth is not None else _NO_TRUTH
         noise = self.rng.standard_normal((n, 2))
         rows, code = run_cycles(
             self.plant.p,
@@ -216,5 +295,8 @@ class SimulatedDrive:
             out,
             np.ascontiguousarray(feedforward.rows) if feedforward is not None else _NO_FEEDFORWARD,
             feedforward.measured_band_rad_s if feedforward is not None else 0.0,
+            truth,
         )
+        if self.truth is not None:
+            self.truth.append(truth[:rows])
         return out[:rows], code

@@ -1,0 +1,885 @@
+"""The truth harness: every metric an experiment reports, checked against the simulated plant's truth.
+
+A run is played on the in-process simulated rig with truth recording on (`SimRig.record_truth`): beside
+every sample the plant's true states and torques (`sim_backend.simulated_drive.TRUTH_COLUMNS`). Each
+metric key of each experiment has a registered `Check`: a function that computes the metric's value by
+the metric's own definition from the truth (true angles instead of sensor readings, the plant's true
+friction torque instead of the current, the plant's law where the metric names a plant property), and a
+tolerance with its reason. `uncovered` names the metric keys of a run no check covers, so a new metric
+without a check fails the completeness test (tests/test_truth_harness.py).
+
+Two kinds of truth are used, and each check says which:
+- *same definition, true signals*: the metric's formula applied to the truth in the same rows (what the
+  sensors, the current as a torque proxy and the sampling do to the figure);
+- *plant law*: the property the metric names, from the model's parameters at the conditions of the run
+  (what the experiment's design does to the figure: e.g. friction against speed measured at other places).
+
+A check with `open_issue` set is known to fail today for the reason it names (another change fixes it);
+the harness runs it and expects it to fail, strictly, so the mark goes when the fix lands.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from model import kernel as k
+from model.params import HarmonicDriveModel
+from model.run import Run
+from rig.config import RigConfig, load_rig_config
+from rig.experiments import experiment_named
+from rig.experiments.base import (
+    Results,
+    RigContext,
+    context_from_run,
+    segment_rows,
+    segments_of,
+)
+from rig.runner import make_params, run_experiment
+from rig.store import RunStore
+from sim_backend.inprocess import SimRig
+
+CFG: RigConfig = load_rig_config("sim")
+
+
+@dataclass
+class TruthRun:
+    """One experiment's run on the simulated rig with the plant's truth aligned to its rows."""
+
+    name: str
+    run: Run
+    truth: dict[str, np.ndarray]  # TRUTH_COLUMNS, row i = the truth of the run's row i
+    params: Any
+    ctx: RigContext
+    results: Results
+    metrics: dict[str, Any]
+    model: HarmonicDriveModel
+    p: np.ndarray  # the plant's parameter vector (model.kernel layout)
+    flags: np.ndarray
+
+    @property
+    def r(self) -> float:
+        return self.ctx.gear_ratio
+
+    @property
+    def quantum_rad(self) -> float:
+        """The motor encoder's step [rad]."""
+        counts = self.ctx.config.sensors.encoder_counts_per_rev
+        return 2 * math.pi / counts if counts else 0.0
+
+    def friction(self, rows: slice | np.ndarray) -> np.ndarray:
+        """The plant's true friction seen from the motor, F_m + r·F_l, per cycle [N·m]."""
+        return self.truth["f_m"][rows] + self.r * self.truth["f_l"][rows]
+
+
+def play(
+    name: str,
+    overrides: dict[str, Any],
+    store: RunStore,
+    model: HarmonicDriveModel | None = None,
+    config: RigConfig = CFG,
+    rig: SimRig | None = None,
+) -> TruthRun:
+    """Run `name` on a simulated rig recording the truth; the run, its analysis and the aligned truth."""
+    if rig is None:
+        rig = SimRig(config, model=model)
+    rig.record_truth()
+    outcome = run_experiment(name, config, overrides, store, rig=rig)
+    assert outcome.status == "complete", outcome.reason
+    run = store.read(outcome.run_id)
+    truth = rig.truth()
+    # The run's clock starts at its first sample (the runner's settle), the rig's at its first cycle.
+    period = 1.0 / config.sample_rate_hz
+    at = np.rint((run["t"] - run["t"][0]) / period).astype(np.int64)
+    assert at[0] == 0 and at[-1] < len(truth["t"]), "truth rows do not line up with the run's samples"
+    np.testing.assert_allclose(truth["t"][at] - truth["t"][0], run["t"] - run["t"][0], atol=1e-6 * period)
+    aligned = {column: values[at] for column, values in truth.items()}
+    experiment = experiment_named(name)
+    params = make_params(experiment, overrides)
+    ctx = context_from_run(run)
+    results = experiment.analyze(run, params, ctx)
+    return TruthRun(
+        name,
+        run,
+        aligned,
+        params,
+        ctx,
+        results,
+        dict(outcome.metrics),
+        rig.model,
+        rig.plant.p,
+        rig.plant.flags,
+    )
+
+
+TruthOf = Callable[[TruthRun, str], float]
+"""The value the truth gives for a metric key, by the metric's own definition."""
+
+
+@dataclass(frozen=True)
+class Check:
+    """How one metric (or a family of keys, by regular expression) is checked against the truth."""
+
+    pattern: str  # a regular expression the whole metric key matches
+    truth: TruthOf
+    abs_tol: float = 0.0
+    rel_tol: float = 0.0
+    reason: str = ""  # why the tolerance is what it is
+    open_issue: str | None = None  # known to fail today, and why (the fix that removes the mark)
+
+    def tolerance(self, truth_value: float) -> float:
+        return self.abs_tol + self.rel_tol * abs(truth_value)
+
+
+@dataclass
+class Outcome:
+    key: str
+    measured: float
+    truth: float
+    tolerance: float
+    check: Check
+    ok: bool = field(init=False)
+
+    def __post_init__(self) -> None:
+        both_nan = math.isnan(self.measured) and math.isnan(self.truth)
+        self.ok = both_nan or abs(self.measured - self.truth) <= self.tolerance
+
+    def line(self) -> str:
+        return (
+            f"{self.key}: measured {self.measured:.6g}, truth {self.truth:.6g}, |diff| "
+            f"{abs(self.measured - self.truth):.3g} > {self.tolerance:.3g} ({self.check.reason})"
+        )
+
+
+CHECKS: dict[str, list[Check]] = {}
+
+
+def check_for(experiment: str, key: str) -> Check | None:
+    for check in CHECKS.get(experiment, []):
+        if re.fullmatch(check.pattern, key):
+            return check
+    return None
+
+
+def uncovered(tr: TruthRun) -> list[str]:
+    """The run's metric keys that no registered check covers."""
+    return [key for key in tr.metrics if check_for(tr.name, key) is None]
+
+
+def evaluate(tr: TruthRun) -> list[Outcome]:
+    """Every covered metric of the run against its truth."""
+    out = []
+    for key, value in tr.metrics.items():
+        check = check_for(tr.name, key)
+        if check is None or isinstance(value, str):
+            continue
+        truth_value = float(check.truth(tr, key))
+        out.append(Outcome(key, float(value), truth_value, check.tolerance(truth_value), check))
+    return out
+
+
+def _add(experiment: str, *checks: Check) -> None:
+    CHECKS.setdefault(experiment, []).extend(checks)
+
+
+def _param(name: str) -> TruthOf:
+    """A metric that echoes a parameter: its truth is the parameter."""
+    return lambda tr, key: float(getattr(tr.params, name))
+
+
+def _count(name: str) -> TruthOf:
+    return lambda tr, key: float(len(getattr(tr.params, name)))
+
+
+ECHO = "a parameter echoed: exact"
+
+
+# --- speed-sweep, load-variation: friction against speed ------------------------------------------------
+
+
+def _windows(tr: TruthRun, prefix: str, settle_s: float) -> list[tuple[float, slice]]:
+    """(set speed, averaged rows) of each constant-speed segment, as `friction_table` takes them."""
+    skip = tr.ctx.cycles(settle_s)
+    out = []
+    for seg in segments_of(tr.run, prefix + "v"):
+        rows = slice(int(seg["start"]) + skip, int(seg["start"]) + int(seg["cycles"]))
+        out.append((float(tr.run["setpoint"][rows.start]), rows))
+    return out
+
+
+def _law_friction_vs_speed(tr: TruthRun, prefix: str, settle_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(true mean ω_m, the plant's steady moving friction F_m + r·F_l) per window: the motor part from its
+    law averaged over the positions *all* windows of the sweep covered (friction against speed at one
+    place), the load part from its law at ω_l = r·ω_m (no position dependence). The law, not the true
+    torques: the seed's load sticks and slips at every speed (its kinematic error's speed A·k·ω_m exceeds
+    r·ω_m), which lowers its mean friction at low speed; that is not viscous friction either."""
+    windows = _windows(tr, prefix, settle_s)
+    places = np.concatenate([tr.truth["theta_m"][rows] for _, rows in windows])
+    load_law = int(tr.flags[k.FL_LOAD_LAW])
+    speeds, friction = [], []
+    for _, rows in windows:
+        omega = float(np.mean(tr.truth["omega_m"][rows]))
+        t_s = float(np.mean(tr.truth["t_s"][rows]))
+        time_s = float(np.mean(tr.truth["t"][rows]))
+        motor = k.steady_motor_friction(tr.p, tr.flags, places, np.full(places.shape, omega), t_s, time_s)
+        omega_l = tr.r * omega
+        moving_l, _ = k.load_levels(tr.p, load_law, abs(omega_l))
+        b_l = tr.p[k.B_L] if load_law != k.LAW_NONE else 0.0
+        load = math.copysign(moving_l, omega) + b_l * omega_l
+        speeds.append(omega)
+        friction.append(float(np.mean(motor)) + tr.r * load)
+    return np.asarray(speeds), np.asarray(friction)
+
+
+def _line_fit(speeds: np.ndarray, friction: np.ndarray, sign: float) -> tuple[float, float]:
+    """(level, slope) of |friction| = level + slope·|ω| over the windows of one direction."""
+    pick = np.sign(speeds) == sign
+    slope, level = np.polyfit(np.abs(speeds[pick]), np.abs(friction[pick]), 1)
+    return float(level), float(slope)
+
+
+def _sweep_law(tr: TruthRun, key: str) -> float:
+    speeds, friction = _law_friction_vs_speed(tr, "", tr.params.settle_s)
+    sign = 1.0 if "_pos_" in key else -1.0
+    level, slope = _line_fit(speeds, friction, sign)
+    return level if key.startswith("coulomb") else slope
+
+
+_add(
+    "speed-sweep",
+    Check("speeds", _count("speeds_rad_s"), reason=ECHO),
+    Check(
+        r"coulomb_(pos|neg)_nm",
+        _sweep_law,
+        rel_tol=0.02,
+        reason="plant law: issue 30's 2 % of the position-averaged level",
+        open_issue="issue 30: each speed is averaged at another place of the stroke (H4)",
+    ),
+    Check(
+        r"viscous_(pos|neg)_nm_s_rad",
+        _sweep_law,
+        rel_tol=0.10,
+        reason="plant law: issue 30's 10 % of the slope at one place (s3·k_v + b_m on the seed)",
+        open_issue="issue 30: each speed is averaged at another place of the stroke (H4)",
+    ),
+)
+
+
+# --- position-friction ----------------------------------------------------------------------------------
+
+
+def _steady_rows(tr: TruthRun) -> np.ndarray:
+    skip = tr.ctx.cycles(tr.params.settle_s)
+    return np.concatenate(
+        [
+            np.arange(int(s["start"]) + skip, int(s["start"]) + int(s["cycles"]))
+            for s in segments_of(tr.run, "pass")
+        ]
+    )
+
+
+def _pf_true_grid(tr: TruthRun) -> dict[str, np.ndarray]:
+    from rig.experiments.position_friction import position_grid
+
+    rows = _steady_rows(tr)
+    direction = np.sign(tr.run["setpoint"][rows])
+    return position_grid(tr.truth["theta_m"][rows], direction, tr.friction(rows), tr.params.bin_rad)
+
+
+def _pf_grid_metric(tr: TruthRun, key: str) -> float:
+    grid = _pf_true_grid(tr)
+    column = "mean_nm" if key.startswith("asymmetry") else "half_diff_nm"
+    reduce = {"mean": np.mean, "min": np.min, "max": np.max}[key.split("_")[1]]
+    return float(reduce(grid[column]))
+
+
+def _speed_factor(tr: TruthRun) -> float:
+    """1 + k_v·(|ω| − v_c) of the article law at the passes' speed."""
+    return 1.0 + tr.p[k.K_V] * (tr.params.speed_rad_s - tr.p[k.V_C])
+
+
+def _pf_quad(tr: TruthRun, key: str) -> float:
+    """The article law's quadratic at the passes' speed, plus what does not depend on position: the
+    periodic part's mean a0/2, the motor's viscous b_m·|ω| and the load's friction r·|F_l| (true)."""
+    factor = _speed_factor(tr)
+    if key.startswith("quad_s1"):
+        return float(tr.p[k.S1] * factor)
+    if key.startswith("quad_s2"):
+        return float(tr.p[k.S2] * factor)
+    rows = _steady_rows(tr)
+    load = tr.r * float(np.mean(np.abs(tr.truth["f_l"][rows])))
+    return float(tr.p[k.S3] * factor + 0.5 * tr.p[k.FOURIER_A] + tr.p[k.B_M] * tr.params.speed_rad_s + load)
+
+
+def _true_fourier(tr: TruthRun) -> tuple[np.ndarray, np.ndarray]:
+    n = tr.params.harmonics
+    return tr.p[k.FOURIER_A + 1 : k.FOURIER_A + 1 + n], tr.p[k.FOURIER_B : k.FOURIER_B + n]
+
+
+def _pf_ripple(tr: TruthRun, key: str) -> float:
+    """Peak-to-peak of the plant's periodic part P(θ_m) (harmonics 1..N) on the analysis' angle grid."""
+    from rig.experiments.position_friction import TURN_RAD, fourier_basis
+
+    a, b = _true_fourier(tr)
+    centres = (np.arange(tr.params.angle_bins) + 0.5) * TURN_RAD / tr.params.angle_bins
+    return float(np.ptp(fourier_basis(centres, len(a)) @ np.column_stack([a, b]).ravel()))
+
+
+def _pf_dominant(tr: TruthRun, key: str) -> float:
+    a, b = _true_fourier(tr)
+    return float(np.argmax(np.hypot(a, b)) + 1)
+
+
+def _pf_stroke(tr: TruthRun, key: str) -> float:
+    return float(np.ptp(tr.truth["theta_m"][_steady_rows(tr)]))
+
+
+_add(
+    "position-friction",
+    Check("speed_rad_s", _param("speed_rad_s"), reason=ECHO),
+    Check("stroke_rad", _pf_stroke, abs_tol=2 * 2 * math.pi / 131072, reason="encoder rounding at both ends"),
+    Check(
+        r"friction_(mean|min|max)_nm",
+        _pf_grid_metric,
+        rel_tol=2e-3,
+        reason="true F_m + r·F_l in the same bins; current noise (5 mA) and the loop's inertial torque"
+        " average out over a bin of whole turns",
+    ),
+    Check(
+        "asymmetry_mean_nm",
+        _pf_grid_metric,
+        abs_tol=2e-4,
+        reason="true friction's direction-independent part in the same bins (0 on the seed); the"
+        " inertial torque of the loop's speed ripple, a few 1e-5 N·m, bounds it",
+    ),
+    Check(
+        r"quad_s1_nm_rad2",
+        _pf_quad,
+        rel_tol=0.02,
+        reason="plant law: s1 is 1.6e-6 N·m/rad², 2 % of it is 1e-4 N·m over a 150 rad stroke",
+    ),
+    Check(r"quad_s2_nm_rad", _pf_quad, rel_tol=0.01, reason="plant law; 1 % as s1's"),
+    Check(r"quad_s3_nm", _pf_quad, rel_tol=0.005, reason="plant law; 0.5 %: the level, best determined"),
+    Check(
+        "ripple_pp_nm",
+        _pf_ripple,
+        rel_tol=0.03,
+        reason="plant law P(θ); the velocity loop does not hold the speed exactly, so J·dω/dt at each"
+        " harmonic adds a few % in quadrature",
+    ),
+    Check("dominant_harmonic", _pf_dominant, reason="plant law: the largest |a_n + j·b_n|, exact"),
+)
+
+
+# --- pulse ----------------------------------------------------------------------------------------------
+
+
+def _pulse_rows(tr: TruthRun) -> list[tuple[slice, slice]]:
+    from rig.experiments.pulse import pulse_labels
+
+    out = []
+    for index in range(tr.params.count):
+        on_label, off_label = pulse_labels(index)
+        out.append((segment_rows(tr.run, on_label), segment_rows(tr.run, off_label)))
+    return out
+
+
+def _pulse_displacements(tr: TruthRun) -> np.ndarray:
+    theta = tr.truth["theta_m"]
+    return np.asarray([theta[off.stop - 1] - theta[on.start] for on, off in _pulse_rows(tr)])
+
+
+def _pulse_displacement(tr: TruthRun, key: str) -> float:
+    d = _pulse_displacements(tr)
+    forward = np.arange(len(d)) % 2 == 0
+    if key == "net_drift_rad":
+        return float(np.sum(d))
+    if key == "displacement_spread_rad":
+        return float(np.std(np.abs(d)))
+    pick = {"mean_displacement_rad": slice(None), "mean_displacement_pos_rad": forward,
+            "mean_displacement_neg_rad": ~forward}[key]  # fmt: skip
+    return float(np.mean(np.abs(d[pick])))
+
+
+def _pulse_peak_speed(tr: TruthRun, key: str) -> float:
+    """Mean over pulses of the true motor speed's peak |ω_m| over pulse and rest."""
+    omega = tr.truth["omega_m"]
+    return float(np.mean([np.max(np.abs(omega[on.start : off.stop])) for on, off in _pulse_rows(tr)]))
+
+
+def _pulse_peak_current(tr: TruthRun, key: str) -> float:
+    """Mean over pulses of the peak |(u − K_b·ω_m)/R| at the samples, with the true ω_m."""
+    u, omega = tr.run["u"], tr.truth["omega_m"]
+    peaks = []
+    for on, _ in _pulse_rows(tr):
+        current = (u[on] - tr.p[k.K_B] * omega[on]) / tr.p[k.R_ARM]
+        peaks.append(float(np.max(np.abs(current))))
+    return float(np.mean(peaks))
+
+
+def _pulse_breakaway(tr: TruthRun, key: str) -> float:
+    """Mean over pulses of the time the true θ_m first departs by move_threshold_rad (between samples)."""
+    theta, rate = tr.truth["theta_m"], tr.ctx.rate_hz
+    times = []
+    for on, off in _pulse_rows(tr):
+        moved = np.abs(theta[on.start : off.stop] - theta[on.start])
+        i = int(np.flatnonzero(moved > tr.params.move_threshold_rad)[0])
+        fraction = (tr.params.move_threshold_rad - moved[i - 1]) / (moved[i] - moved[i - 1])
+        times.append((i - 1 + fraction) / rate)
+    return float(np.mean(times))
+
+
+def _pulse_stop(tr: TruthRun, key: str) -> float:
+    """Mean over pulses of the time from the pulse's end until the motor is stuck for good (true)."""
+    stuck = tr.truth["stuck_m"]
+    times = []
+    for _, off in _pulse_rows(tr):
+        moving = np.flatnonzero(stuck[off] < 1.0)
+        times.append(0.0 if not len(moving) else (moving[-1] + 1) / tr.ctx.rate_hz)
+    return float(np.mean(times))
+
+
+def _pulse_counts(tr: TruthRun, key: str) -> float:
+    theta, omega = tr.truth["theta_m"], tr.truth["omega_m"]
+    count = 0
+    for on, off in _pulse_rows(tr):
+        if key == "pulses_not_moving":
+            count += not np.any(
+                np.abs(theta[on.start : off.stop] - theta[on.start]) > tr.params.move_threshold_rad
+            )
+        else:
+            count += abs(omega[off.stop - 1]) > tr.params.rest_speed_rad_s
+    return float(count)
+
+
+_add(
+    "pulse",
+    Check("pulses", _param("count"), reason=ECHO),
+    Check(
+        r"mean_displacement(_pos|_neg)?_rad|displacement_spread_rad",
+        _pulse_displacement,
+        abs_tol=2 * math.pi / 131072,
+        reason="true θ_m at the same rows; the encoder rounds each end by half a count",
+    ),
+    Check(
+        "net_drift_rad",
+        _pulse_displacement,
+        abs_tol=2 * math.pi / 131072,
+        reason="true θ_m; the sum telescopes to one count at most when pulses follow each other",
+    ),
+    Check(
+        "mean_peak_speed_rad_s",
+        _pulse_peak_speed,
+        rel_tol=0.005,
+        reason="true peak |ω_m|; an encoder difference over one 1 ms cycle rounds the peak by < 0.5 %",
+        open_issue="issue 31 item 4: the peak comes from the drive's filtered speed (H6)",
+    ),
+    Check(
+        "mean_peak_current_a",
+        _pulse_peak_current,
+        abs_tol=0.02,
+        reason="the plant's current (u − K_b·ω_m)/R at the samples; the max picks the noise's top,"
+        " ≤ 4σ of 5 mA",
+    ),
+    Check(
+        "mean_breakaway_s",
+        _pulse_breakaway,
+        abs_tol=1.5e-3,
+        reason="true θ_m interpolated; a sampled, quantized crossing lags it by up to one 1 ms cycle",
+    ),
+    Check(
+        "mean_stop_s",
+        _pulse_stop,
+        abs_tol=1.5e-3,
+        reason="true stuck flag; the last moving sample is within a cycle, and 0.1 rad/s → 0 takes < 0.2 ms",
+        open_issue="issue 31 item 4: the stop comes from the drive's filtered speed (H6)",
+    ),
+    Check(r"pulses_not_(moving|at_rest)", _pulse_counts, reason="counted on the true θ_m, ω_m: exact"),
+)
+
+
+# --- load-variation -------------------------------------------------------------------------------------
+
+
+def _lv_levels(tr: TruthRun) -> tuple[np.ndarray, np.ndarray]:
+    """(τ_ext, mean |true friction| over the sweep's windows) per load."""
+    from rig.experiments.load_variation import load_prefix
+
+    levels = []
+    for tau in tr.params.loads_nm:
+        windows = _windows(tr, load_prefix(tau), tr.params.settle_s)
+        levels.append(float(np.mean([abs(float(np.mean(tr.friction(rows)))) for _, rows in windows])))
+    return np.asarray(tr.params.loads_nm, dtype=float), np.asarray(levels)
+
+
+def _lv_metric(tr: TruthRun, key: str) -> float:
+    loads, levels = _lv_levels(tr)
+    if key == "level_min_nm":
+        return float(levels.min())
+    if key == "level_max_nm":
+        return float(levels.max())
+    slope, intercept = np.polyfit(np.abs(loads), levels, 1)
+    return float(slope if key == "friction_per_load_nm_per_nm" else intercept)
+
+
+_add(
+    "load-variation",
+    Check("loads", _count("loads_nm"), reason=ECHO),
+    Check("speeds", _count("speeds_rad_s"), reason=ECHO),
+    Check(
+        r"level_(min|max)_nm|level_at_no_load_nm",
+        _lv_metric,
+        rel_tol=3e-3,
+        reason="true F_m + r·F_l in the same windows; current noise and ripple average out over the holds",
+    ),
+    Check(
+        "friction_per_load_nm_per_nm",
+        _lv_metric,
+        abs_tol=2e-5,
+        reason="slope of the true levels; 2e-5 N·m per N·m is 0.3 % of the level over the loads' span",
+    ),
+)
+
+
+# --- step, sine, ramp: tracking at the output -------------------------------------------------------------
+
+
+def _true_track(tr: TruthRun, rows: slice, kinematic_free: bool = False) -> Any:
+    """The experiment's OutputTrack with the true angles, zeroed as the experiment zeroes (true θ_l
+    averaged over the same window); `kinematic_free`: the load angle less the kinematic error."""
+    from rig.experiments.tracking import ZERO_WINDOW_S, OutputTrack
+
+    program_start = min(int(seg["start"]) for seg in segments_of(tr.run))
+    zero = slice(max(0, program_start - tr.ctx.cycles(ZERO_WINDOW_S)), program_start)
+    load = tr.truth["theta_l"]
+    if kinematic_free:
+        load = load - _kinematic_error(tr, tr.truth["theta_m"])
+    theta_l0 = float(np.mean(load[zero]))
+    t = tr.run.t[rows]
+    return OutputTrack(
+        t_s=t - t[0],
+        setpoint=tr.r * (tr.run["setpoint"][rows] - tr.ctx.theta_m0),
+        load=load[rows] - theta_l0,
+        motor=tr.r * (tr.truth["theta_m"][rows] - tr.ctx.theta_m0),
+    )
+
+
+def _kinematic_error(tr: TruthRun, theta_m: np.ndarray) -> np.ndarray:
+    if not tr.model.kinematic_error:
+        return np.zeros_like(theta_m)
+    return tr.p[k.KE_A] * np.sin(tr.p[k.KE_K] * theta_m + tr.p[k.KE_PHI])
+
+
+def _side_and_name(key: str) -> tuple[str, str]:
+    return ("motor", key.removeprefix("motor_")) if key.startswith("motor_") else ("load", key)
+
+
+def _step_truth(tr: TruthRun, key: str) -> float:
+    from rig.experiments.tracking import STEP_LABELS, step_metrics
+
+    side, name = _side_and_name(key)
+    match = re.fullmatch(r"(.*)_(\d)", name)
+    quantity, which = (match.group(1), int(match.group(2))) if match else (name, None)
+    values, set_from = [], 0.0
+    for label in STEP_LABELS:
+        track = _true_track(tr, segment_rows(tr.run, label))
+        set_to = float(track.setpoint[0])
+        got = step_metrics(
+            track.t_s,
+            getattr(track, side),
+            set_from,
+            set_to,
+            tr.params.band_fraction,
+            tr.ctx.cycles(tr.params.steady_s),
+        )
+        values.append(got[quantity])
+        set_from = set_to
+    return float(values[which - 1]) if which else float(np.mean(values))
+
+
+_add(
+    "step",
+    Check("band_fraction", _param("band_fraction"), reason=ECHO),
+    Check(
+        r"(motor_)?settling_s(_\d)?",
+        _step_truth,
+        abs_tol=2e-3,
+        reason="true angle; 2 µrad of sensor noise can move the last exit from the band by a sample or two",
+    ),
+    Check(
+        r"(motor_)?rise_s(_\d)?",
+        _step_truth,
+        abs_tol=1e-4,
+        reason="true angle; noise moves an interpolated 10 %/90 % crossing by µs at ~6 rad/s",
+    ),
+    Check(
+        r"(motor_)?overshoot_pct(_\d)?",
+        _step_truth,
+        abs_tol=2e-3,
+        reason="true angle; the max picks the noise's top, ≤ 5σ = 10 µrad of a 1 rad step = 1e-3 %",
+    ),
+    Check(
+        r"(motor_)?ss_error_rad(_\d)?",
+        _step_truth,
+        abs_tol=3e-6,
+        reason="true angle and zero; sensor noise 2 µrad averaged over 50+ samples, encoder r·q = 0.5 µrad",
+    ),
+)
+
+
+def _sine_truth(tr: TruthRun, key: str) -> float:
+    from rig.experiments.tracking import Sine, fit_phasor
+
+    rows = segment_rows(tr.run, "sine")
+    skip = tr.ctx.cycles(tr.params.skip_periods / tr.params.freq_hz) if tr.params.skip_periods else 0
+    track = _true_track(tr, slice(rows.start + skip, rows.stop))
+    assert isinstance(experiment_named("sine"), Sine)
+    side, name = _side_and_name(key)
+    y = getattr(track, side)
+    error = y - track.setpoint
+    if name == "rms_error_rad":
+        return float(np.sqrt(np.mean(error**2)))
+    if name == "max_error_rad":
+        return float(np.max(np.abs(error)))
+    phasor = fit_phasor(track.t_s, y, tr.params.freq_hz)
+    set_phasor = fit_phasor(track.t_s, track.setpoint, tr.params.freq_hz)
+    if name == "gain":
+        return abs(phasor) / abs(set_phasor)
+    return float(np.degrees(np.angle(set_phasor * phasor.conjugate())))
+
+
+_add(
+    "sine",
+    Check("freq_hz", _param("freq_hz"), reason=ECHO),
+    Check(r"(motor_)?rms_error_rad", _sine_truth, abs_tol=3e-6, reason="true angle and zero; 2 µrad noise"),
+    Check(
+        r"(motor_)?max_error_rad", _sine_truth, abs_tol=1e-5, reason="true angle; the max adds ≤ 5σ of noise"
+    ),
+    Check(r"(motor_)?gain", _sine_truth, abs_tol=1e-5, reason="true angle; noise on a 0.5 rad phasor"),
+    Check(
+        r"(motor_)?phase_lag_deg", _sine_truth, abs_tol=1e-3, reason="true angle; noise on a 0.5 rad phasor"
+    ),
+)
+
+
+def _ramp_residuals(tr: TruthRun, side: str, kinematic_free: bool) -> tuple[list[float], list[float]]:
+    from rig.experiments.tracking import RAMP_LABELS, detrended
+
+    skip = tr.ctx.cycles(tr.params.skip_s)
+    pp, rms = [], []
+    for label in RAMP_LABELS:
+        rows = segment_rows(tr.run, label)
+        track = _true_track(tr, slice(rows.start + skip, rows.stop), kinematic_free)
+        residual = detrended(track.t_s, getattr(track, side) - track.setpoint)
+        pp.append(float(np.ptp(residual)))
+        rms.append(float(np.sqrt(np.mean(residual**2))))
+    return pp, rms
+
+
+def _ramp_stick_slip(tr: TruthRun, key: str) -> float:
+    """Stick-slip by its name: the load's detrended tracking error *less the kinematic error*, which is a
+    property of the gear's geometry, not of friction (issue 31 item 3)."""
+    pp, rms = _ramp_residuals(tr, "load", kinematic_free=True)
+    return float(np.mean(pp if key.endswith("pp_rad") else rms))
+
+
+def _ramp_motor_pp(tr: TruthRun, key: str) -> float:
+    pp, _ = _ramp_residuals(tr, "motor", kinematic_free=False)
+    return float(np.mean(pp))
+
+
+def _ramp_stuck(tr: TruthRun, key: str) -> float:
+    from rig.experiments.tracking import Ramp, program_rows
+
+    side = key.rsplit("_", 1)[1]
+    track = _true_track(tr, program_rows(tr.run))
+    starts, ends = Ramp.stuck(track, side, tr.params, tr.ctx)
+    if key.startswith("stick_phases"):
+        return float(len(starts))
+    return float(np.sum(ends - starts) / len(track.t_s))
+
+
+_add(
+    "ramp",
+    Check(
+        r"stick_slip_(pp|rms)_rad",
+        _ramp_stick_slip,
+        rel_tol=0.1,
+        reason="true θ_l less the kinematic error; 10 % leaves room for the 2 µrad noise on a ~1e-4 rad"
+        " figure",
+        open_issue="issue 31 item 3: the figure is mostly the kinematic error (H5)",
+    ),
+    Check(
+        "motor_stick_slip_pp_rad",
+        _ramp_motor_pp,
+        abs_tol=2 * 0.01 * 2 * math.pi / 131072,
+        reason="true θ_m; the encoder's rounding, r·q = 0.48 µrad at the output, at both extremes",
+    ),
+    Check(
+        r"stick_phases_(load|motor)",
+        _ramp_stuck,
+        abs_tol=1.0,
+        reason="the same threshold on the true angles' smoothed speed; noise can split or join one span",
+    ),
+    Check(
+        r"stuck_fraction_(load|motor)",
+        _ramp_stuck,
+        abs_tol=0.02,
+        reason="the same threshold on the true angles' smoothed speed; noise moves span edges by a few"
+        " samples",
+    ),
+)
+
+
+# --- chirp ------------------------------------------------------------------------------------------------
+
+
+def _replaced(run: Run, columns: dict[str, np.ndarray]) -> Run:
+    """A copy of `run` with some columns replaced."""
+    return Run({**run.columns, **columns}, dict(run.meta))
+
+
+def _chirp_same_definition(tr: TruthRun, key: str) -> float:
+    from rig.experiments.chirp import Chirp
+
+    true_run = _replaced(tr.run, {"omega_m": tr.truth["omega_m"], "theta_l": tr.truth["theta_l"]})
+    results = Chirp().analyze(true_run, tr.params, tr.ctx)
+    return float(results.metrics.get(key, math.nan))
+
+
+def _linear_plant(tr: TruthRun) -> tuple[float, float]:
+    """(antiresonance, resonance) of the plant linearized about its mean speed [Hz]: i → ω_m has zeros at
+    J_l·s² + b_l·s + K_s (the load's own mode) and poles where the motor's inertia joins it."""
+    j_m, j_l, r, k_s = tr.p[k.J_M], tr.p[k.J_L], tr.r, tr.p[k.K_S]
+    anti = math.sqrt(k_s / j_l) / (2 * math.pi)
+    res = math.sqrt(k_s * (1.0 / j_l + r * r / j_m)) / (2 * math.pi)
+    return anti, res
+
+
+def _chirp_law(tr: TruthRun, key: str) -> float:
+    anti, res = _linear_plant(tr)
+    return anti if key == "antiresonance_hz" else res
+
+
+def _line_spacing(tr: TruthRun) -> float:
+    return 1.0 / (tr.ctx.cycles(tr.params.period_s) / tr.ctx.rate_hz)
+
+
+_add(
+    "chirp",
+    Check(
+        r"coherence_1_10hz_(speed|load|closed_loop)",
+        _chirp_same_definition,
+        abs_tol=0.01,
+        reason="the same estimate on the true ω_m, θ_l: what the sensors' noise takes from the coherence",
+    ),
+    Check(
+        r"(anti)?resonance_hz",
+        _chirp_law,
+        abs_tol=0.5,
+        reason="plant law, linearized (K_s, J_m, J_l, r); read at lines 1/period_s apart: half a line"
+        " (0.5 Hz at the harness's 1 s period)",
+        open_issue="issue 31 items 2, 5: FRF biased by position-dependent friction, frequencies not"
+        " interpolated between lines (H6)",
+    ),
+    Check(
+        r"closed_loop_(peak_hz|bandwidth_hz)",
+        _chirp_same_definition,
+        abs_tol=1e-9,
+        reason="the same estimate on the true θ_l: the same line",
+    ),
+    Check(
+        "closed_loop_peak_db",
+        _chirp_same_definition,
+        abs_tol=0.05,
+        reason="the same estimate on the true θ_l: 2 µrad noise on the output's spectrum",
+    ),
+)
+
+
+# --- compensation ---------------------------------------------------------------------------------------
+
+
+def _comp_truth(tr: TruthRun, key: str) -> float:
+    """The same figures with the true θ_l (zeroed on the true θ_l at the same hold window)."""
+    from rig.experiments.compensation import Compensation
+
+    true_run = _replaced(tr.run, {"theta_l": tr.truth["theta_l"], "theta_m": tr.truth["theta_m"]})
+    return float(Compensation().analyze(true_run, tr.params, tr.ctx).metrics[key])
+
+
+_add(
+    "compensation",
+    Check(r"rms_error_(step|sine|ramp)_.*_rad", _comp_truth, abs_tol=3e-6, reason="true θ_l; 2 µrad noise"),
+    Check(
+        r"stick_slip_pp_.*_rad",
+        _comp_truth,
+        abs_tol=1.5e-5,
+        reason="true θ_l; the peak-to-peak adds up to ±5σ of the 2 µrad noise at each end",
+    ),
+    Check(
+        r"improvement_.*",
+        _comp_truth,
+        rel_tol=0.02,
+        reason="a ratio of the figures above; their tolerance relative to the ramp's ~1e-3 rad",
+    ),
+)
+
+
+# --- endurance ------------------------------------------------------------------------------------------
+
+
+def _endurance_truth(tr: TruthRun, key: str) -> float:
+    """The same estimates from true F_m + r·F_l (unloaded holds, as the experiment takes them) and,
+    for the stiffness, the plant's K_s."""
+    from rig.experiments.endurance import CHECKPOINT_PREFIX, _hold_window, checkpoints_due
+
+    if key == "checkpoints":
+        return float(checkpoints_due(tr.params))
+    if key == "stiffness_last_nm_rad":
+        return float(tr.p[k.K_S])
+    names = sorted({str(seg["label"]).split("/")[0] for seg in segments_of(tr.run, CHECKPOINT_PREFIX)})
+    levels = []
+    for name in names:
+        speeds, torques = [], []
+        for seg in segments_of(tr.run, name + "/"):
+            label = seg["label"][len(name) + 1 :]
+            if label.endswith("L"):
+                continue
+            rows = _hold_window(tr.run, seg, tr.ctx, tr.params.settle_s)
+            speeds.append(abs(float(np.mean(tr.truth["omega_m"][rows]))))
+            torques.append(abs(float(np.mean(tr.friction(rows)))))
+        x = np.column_stack([np.ones(len(speeds)), speeds])
+        levels.append(float(np.linalg.lstsq(x, np.asarray(torques), rcond=None)[0][0]))
+    if key == "coulomb_first_nm":
+        return levels[0]
+    if key == "coulomb_last_nm":
+        return levels[-1]
+    return 100.0 * (levels[-1] / levels[0] - 1.0)
+
+
+_add(
+    "endurance",
+    Check("checkpoints", _endurance_truth, reason="checkpoints due for the duration: exact"),
+    Check(
+        r"coulomb_(first|last)_nm",
+        _endurance_truth,
+        rel_tol=3e-3,
+        reason="true friction in the same holds; current noise and ripple average out over a hold",
+    ),
+    Check(
+        "coulomb_change_pct", _endurance_truth, abs_tol=0.5, reason="from the two levels above, 0.3 % each"
+    ),
+    Check(
+        "stiffness_last_nm_rad",
+        _endurance_truth,
+        rel_tol=0.02,
+        reason="plant law K_s (linear spring); the kinematic error averages over whole periods of a hold"
+        " only to within ~1 % of the 5 mrad deflection change",
+    ),
+)
