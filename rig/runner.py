@@ -26,6 +26,7 @@ from model.run import Run
 from rig.config import RigConfig
 from rig.experiments import experiment_named
 from rig.experiments.base import Experiment, ExperimentParams, Observer, Results, RigContext, context_from_run
+from rig.experiments.tracking import ZERO_WINDOW_S
 from rig.faults import DeviceFaultError
 from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, open_rig
 from rig.runfile import json_text
@@ -35,6 +36,18 @@ from rig.store import PART_ROWS_MAX, AnalysisState, RunStore, RunWriter
 logger = logging.getLogger(__name__)
 
 SETTLE_S = 0.2
+"""Shortest hold before a program [s]."""
+SETTLE_MAX_S = 4.0
+"""Longest hold waiting for the output to come to rest [s]: a gear that still moves then is said so in the
+run's metadata (`settle`) and its results' notes, and the program starts anyway."""
+REST_WINDOW_S = ZERO_WINDOW_S
+"""The output is at rest when its motion over the last such window is at its noise; the same window the
+tracking experiments average for their zero, so the zero is taken at rest."""
+APPROACH_S = 0.5
+"""Time of the move to a whole motor turn before an experiment that starts on one (`start_on_turn`) [s]."""
+REST_NOISE_FACTOR = 3.0
+"""At rest: θ_l's spread over the window at most this many times its noise (1 σ each); pure noise has a
+spread of 1 σ, a ring of amplitude a a spread of a/√2."""
 Progress = Callable[[str, float], None]
 """Called with a label (experiment or segment) and the fraction of the whole job done, 0..1."""
 
@@ -92,17 +105,97 @@ def _virtual_time(rig: Rig) -> bool:
     return rig.config.backend == "sim" and rig.config.pace == "virtual"
 
 
-def _settle(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> tuple[float, str | None]:
-    """Hold still briefly (velocity 0); the motor position it holds, and the abort reason if it tripped."""
-    last: dict[str, np.ndarray] = {}
+@dataclass(frozen=True)
+class Settled:
+    """How the runner's settle ended: where the motor held, for how long, and whether the output came to
+    rest (its motion over the last REST_WINDOW_S at its noise) within SETTLE_MAX_S."""
+
+    theta_m_rad: float
+    duration_s: float
+    at_rest: bool
+    motion_rad: float  # spread (1 σ) of θ_l over the last rest window
+    noise_rad: float  # θ_l's noise (1 σ) estimated from its second differences over that window
+    aborted: str | None = None
+
+    def meta(self) -> dict[str, Any]:
+        return {
+            "duration_s": self.duration_s,
+            "at_rest": self.at_rest,
+            "motion_rad": self.motion_rad,
+            "noise_rad": self.noise_rad,
+            "max_s": SETTLE_MAX_S,
+        }
+
+
+def output_motion(theta_l: np.ndarray) -> tuple[float, float]:
+    """(motion, noise) of a window of θ_l [rad, 1 σ]: its spread about its mean, and the noise that the
+    second differences show (white noise of σ gives var(Δ²) = 6σ²; a ring at the load mode's 11 Hz
+    barely shows in Δ² at 1 kHz, so the estimate is not swamped by the motion it is compared with)."""
+    motion = float(np.std(theta_l))
+    noise = float(np.std(np.diff(theta_l, 2)) / np.sqrt(6.0)) if theta_l.size > 3 else 0.0
+    return motion, noise
+
+
+def _at_rest(motion_rad: float, noise_rad: float) -> bool:
+    return motion_rad <= REST_NOISE_FACTOR * noise_rad
+
+
+def _settle(
+    rig: Rig, sink: Callable[[dict[str, np.ndarray]], None], duration_s: float | None = None
+) -> Settled:
+    """Hold still (velocity 0) for at least SETTLE_S and until the output is at rest, at most SETTLE_MAX_S;
+    `duration_s` holds exactly that long instead (a replay of a run holds as long as the run did)."""
+    rate_hz = rig.config.sample_rate_hz
+    window = max(4, round(REST_WINDOW_S * rate_hz))
+    tail: dict[str, np.ndarray] = {"theta_m": np.empty(0), "theta_l": np.empty(0)}
 
     def keep(block: dict[str, np.ndarray]) -> None:
-        last.update(block)
+        for name in tail:
+            tail[name] = np.concatenate([tail[name], np.asarray(block[name])])[-window:]
         sink(block)
 
-    cycles = max(1, round(SETTLE_S * rig.config.sample_rate_hz))
-    result = rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(cycles), 0.0, "settle"), keep)
-    return float(last["theta_m"][-1]) if last else float("nan"), result.aborted
+    if duration_s is not None:
+        plan = [max(1, round(duration_s * rate_hz))]
+    else:
+        first = max(window, round(SETTLE_S * rate_hz))
+        plan = [first] + [window] * max(0, (round(SETTLE_MAX_S * rate_hz) - first) // window)
+    cycles = 0
+    motion, noise, aborted = float("nan"), float("nan"), None
+    for n in plan:
+        result = rig.run_segment(Segment(ControlMode.VELOCITY, np.zeros(n), 0.0, "settle"), keep)
+        cycles += n
+        aborted = result.aborted
+        motion, noise = output_motion(tail["theta_l"])
+        if aborted is not None or (duration_s is None and _at_rest(motion, noise)):
+            break
+    theta_m = float(tail["theta_m"][-1]) if tail["theta_m"].size else float("nan")
+    return Settled(theta_m, cycles / rate_hz, _at_rest(motion, noise), motion, noise, aborted)
+
+
+def _approach_turn(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> str | None:
+    """Move the motor to its nearest whole turn and hold (`approach`), before the settle: an experiment
+    whose metrics depend on the angle it starts at (through the kinematic error and the friction's
+    ripple, both periodic in whole turns of the motor) then starts in the same place whatever ran
+    before it. The abort reason, if it tripped."""
+    rate_hz = rig.config.sample_rate_hz
+    here: dict[str, float] = {}
+
+    def keep(block: dict[str, np.ndarray]) -> None:
+        here["theta_m"] = float(block["theta_m"][-1])
+        sink(block)
+
+    hold = Segment(ControlMode.VELOCITY, np.zeros(max(1, round(SETTLE_S * rate_hz))), 0.0, "settle-before")
+    result = rig.run_segment(hold, keep)
+    if result.aborted is not None or "theta_m" not in here:
+        return result.aborted
+    start = here["theta_m"]
+    target = 2 * np.pi * round(start / (2 * np.pi))
+    # Half a cosine: starts and ends at rest, at most π/2·(π rad)/APPROACH_S ≈ 10 rad/s at the motor.
+    phase = np.linspace(0.0, np.pi, max(2, round(APPROACH_S * rate_hz)))
+    path = start + (target - start) * (1.0 - np.cos(phase)) / 2
+    move = Segment(ControlMode.POSITION, path, 0.0, "approach")
+    rig.check_segment(move)
+    return rig.run_segment(move, sink).aborted
 
 
 def _save_results(store: RunStore, run_id: str, results: Results) -> list[Path]:
@@ -127,8 +220,10 @@ def run_experiment(
     progress: Progress | None = None,
     rig: Rig | None = None,
     hooks: RunHooks | None = None,
+    settle_s: float | None = None,
 ) -> RunOutcome:
-    """Run one experiment on the rig `config` names (or on `rig`), store it, analyze it."""
+    """Run one experiment on the rig `config` names (or on `rig`), store it, analyze it. The settle before
+    the program lasts until the output is at rest, or exactly `settle_s` if given (a replay)."""
     experiment = experiment_named(name)
     params = make_params(experiment, overrides or {})
     store = store or RunStore()
@@ -139,7 +234,7 @@ def run_experiment(
         modes = rig.check_modes(sorted({ControlMode.VELOCITY, *experiment.needs}))  # VELOCITY: the settle
         for line in modes:
             logger.info("%s: %s", experiment.name, line)
-        return _play(experiment, params, rig, store, progress, hooks or RunHooks(), modes)
+        return _play(experiment, params, rig, store, progress, hooks or RunHooks(), modes, settle_s)
     finally:
         if own_rig:
             rig.close()
@@ -153,6 +248,7 @@ def _play(
     progress: Progress | None,
     hooks: RunHooks,
     modes: list[str],
+    settle_s: float | None = None,
 ) -> RunOutcome:
     config = rig.config
     rig.enable()
@@ -202,7 +298,7 @@ def _play(
     with writer:
         fault = None
         try:
-            reason, ctx = _record(experiment, params, rig, writer, sink, progress, hooks)
+            reason, ctx = _record(experiment, params, rig, writer, sink, progress, hooks, settle_s)
         except DeviceFaultError as exc:
             rig.quick_stop()  # first the motor, then the bookkeeping
             fault = str(exc)
@@ -240,6 +336,13 @@ def _analyze(
         )
         if results is None:
             results = experiment.analyze(run, params, ctx)
+        settle = store.get(run_id)["meta"].get("settle")
+        if settle and not settle.get("at_rest", True):
+            results.notes.append(
+                f"the output was still moving when the program started: after {settle['duration_s']:.3g} s"
+                f" of holding still its motion was {settle['motion_rad']:.3g} rad against its noise of"
+                f" {settle['noise_rad']:.3g} rad (1 σ); a zero taken then is off by up to that motion"
+            )
         artifacts = _save_results(store, run_id, results)
         plot_dir = store.add_artifact(run_id, "plots")
         plot_dir.mkdir(parents=True, exist_ok=True)
@@ -281,14 +384,21 @@ def _record(
     sink: Callable[[Block], None],
     progress: Progress | None,
     hooks: RunHooks,
+    settle_s: float | None = None,
 ) -> tuple[str | None, RigContext]:
     """Settle, then play the program; (abort reason or None, the rig context the program ran in)."""
     config = rig.config
-    theta_m0, aborted = _settle(rig, sink)
+    if getattr(experiment, "start_on_turn", False):
+        aborted = _approach_turn(rig, sink)
+        if aborted is not None:
+            return aborted, RigContext(config, rig.gear_ratio, rig.torque_constant_nm_per_a, float("nan"))
+    settled = _settle(rig, sink, settle_s)
+    theta_m0 = settled.theta_m_rad
     writer.flush_soon()  # each segment's rows on disk as it ends (a virtual-time run outpaces the interval)
+    writer.update_meta({"settle": settled.meta()})
     ctx = RigContext(config, rig.gear_ratio, rig.torque_constant_nm_per_a, theta_m0)
-    if aborted is not None:
-        return aborted, ctx
+    if settled.aborted is not None:
+        return settled.aborted, ctx
     program = experiment.program(params, ctx)
     labels = [seg.label for seg in program]
     if len(set(labels)) != len(labels):

@@ -19,6 +19,7 @@ from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from model.run import Run
 from rig.config import RigConfig, load_rig_config
+from rig.experiments.tracking import ZERO_WINDOW_S
 from rig.runner import RunOutcome, run_experiment
 from rig.store import RunStore
 from sim_backend.inprocess import SimRig
@@ -45,9 +46,10 @@ def _rows(run: Run, label: str) -> tuple[int, int]:
 
 
 def _load_from_start(run: Run) -> np.ndarray:
-    """θ_l less its mean over the 50 samples before the program (the settle's end) [rad]."""
+    """θ_l less its mean over the zero window before the program (the settle's end, at rest) [rad]."""
     first = min(int(s["start"]) for s in run.meta["segments"])
-    return run["theta_l"] - run["theta_l"][first - 50 : first].mean()
+    window = round(ZERO_WINDOW_S * RATE_HZ)
+    return run["theta_l"] - run["theta_l"][first - window : first].mean()
 
 
 def _frictionless(seed: HarmonicDriveModel, **more: Any) -> HarmonicDriveModel:

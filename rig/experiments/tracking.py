@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -40,8 +41,10 @@ from rig.experiments.base import Experiment, ExperimentParams, Results, RigConte
 from rig.experiments.plots import new_figure, save_figure
 from rig.interface import ControlMode, Segment
 
-ZERO_WINDOW_S = 0.05
-"""Stretch before the program averaged for the load angle's zero [s]: 50 samples at 1 kHz."""
+ZERO_WINDOW_S = 0.1
+"""Stretch before the program averaged for the load angle's zero [s]: the end of the runner's settle, which
+holds until the output is at rest over this window (rig.runner.REST_WINDOW_S); 0.1 s spans a full period
+of the seed's 11 Hz load mode, so what is left of a ring averages out rather than biasing the zero."""
 
 
 # --- shared by the three experiments ---------------------------------------------------------------------
@@ -186,6 +189,7 @@ STEP_QUANTITIES = ("settling_s", "rise_s", "overshoot_pct", "ss_error_rad")
 
 class Step(Experiment):
     name = "step"
+    start_on_turn: ClassVar[bool] = True  # the runner starts it on a whole motor turn (see module doc)
     summary = "output position step (1 rad) and back; settling, rise, overshoot of the load angle"
     Params = StepParams
     needs = frozenset({ControlMode.POSITION})
@@ -300,6 +304,7 @@ def fit_phasor(t_s: np.ndarray, y: np.ndarray, freq_hz: float) -> complex:
 
 class Sine(Experiment):
     name = "sine"
+    start_on_turn: ClassVar[bool] = True  # the runner starts it on a whole motor turn (see module doc)
     summary = "sinusoidal output position (0.5 Hz); RMS tracking error, gain and phase of the load angle"
     Params = SineParams
     needs = frozenset({ControlMode.POSITION})
@@ -424,6 +429,7 @@ def smoothed_speed(y: np.ndarray, params: RampParams, ctx: RigContext) -> np.nda
 
 class Ramp(Experiment):
     name = "ramp"
+    start_on_turn: ClassVar[bool] = True  # the runner starts it on a whole motor turn (see module doc)
     summary = "slow output ramp up and down; stick-slip amplitude of the load angle, stick phases"
     Params = RampParams
     needs = frozenset({ControlMode.POSITION})
