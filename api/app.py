@@ -26,7 +26,7 @@ from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.background import BackgroundTask
 
-from api import auth, problems
+from api import auth, guard, problems
 from api.auth import Principal, Sessions
 from api.problems import FieldError, Problem, ProblemError
 from api.schemas import (
@@ -62,6 +62,9 @@ STREAM_KINDS = frozenset(
 STREAM_POLL_S = 0.02  # the event stream's poll of the log: a live plot's latency, a negligible load
 KEEP_ALIVE_S = 10.0  # a comment line this often keeps proxies and browsers from closing a quiet stream
 REPORT_DIR = "report"
+QUEUE_MAX = 20  # jobs waiting for the rig: a working day of campaigns; more is a client gone wrong
+AUDIT_PAGE_MAX = 1000  # audit lines in one answer
+AUDIT_DETAIL_MAX = 2000  # characters of a start request kept in its audit line
 MEDIA_TYPES = {
     "csv": "text/csv",
     "parquet": "application/vnd.apache.parquet",
@@ -258,15 +261,28 @@ def model(
 def start_run(
     body: RunRequest, request: Request, response: Response, who: Operator
 ) -> RunDocument | JobDocument:
-    try:
+    worker = _worker(request)
+    try:  # the whole plan, built against this rig, before anything moves
         plan = actions.plan_run(
-            body.experiment, body.params, keep_going=body.keep_going, unit=body.unit, tags=body.tags
+            body.experiment,
+            body.params,
+            keep_going=body.keep_going,
+            unit=body.unit,
+            tags=body.tags,
+            rig=worker.rig,
         )
     except UserInputError as exc:
         raise _named(exc, body) from None
-    worker = _worker(request)
+    waiting = sum(job.status == JobStatus.QUEUED for job in worker.jobs())
+    if body.queue and waiting >= QUEUE_MAX:
+        raise ProblemError(
+            429,
+            f"the queue holds {waiting} jobs already (at most {QUEUE_MAX}); try again when one has ended",
+            headers={"Retry-After": str(problems.RETRY_AFTER_S)},
+        )
     job = worker.submit(plan, owner=who.name, queue=body.queue)
-    _audit(request, who, "start", job.id, json.dumps({"experiment": body.experiment, "params": body.params}))
+    started = json.dumps({"experiment": body.experiment, "params": body.params})
+    _audit(request, who, "start", job.id, problems.excerpt(started, AUDIT_DETAIL_MAX))
     if job.kind == JobKind.RUN:
         _accepted(response, f"{API}/runs/{job.id}")
         return _run(request, job.id)
@@ -537,9 +553,15 @@ def _clean(value: Any) -> Any:
 @router.get(
     "/jobs", response_model=list[JobDocument], tags=["jobs"], summary="every job: runs, campaigns, fits, gaps"
 )
-def jobs(request: Request, who: Viewer) -> list[JobDocument]:
-    every = [*_worker(request).jobs(), *_analysis(request).jobs()]
-    return [job.document() for job in sorted(every, key=lambda job: job.created)]
+def jobs(
+    request: Request,
+    who: Viewer,
+    limit: Annotated[
+        int, Query(ge=1, le=MAX_PAGE, description=f"the newest jobs, oldest first, 1-{MAX_PAGE}")
+    ] = MAX_PAGE,
+) -> list[JobDocument]:
+    every = sorted([*_worker(request).jobs(), *_analysis(request).jobs()], key=lambda job: job.created)
+    return [job.document() for job in every[-limit:]]
 
 
 @router.get("/jobs/{job_id}", response_model=JobDocument, tags=["jobs"], summary="one job")
@@ -685,7 +707,9 @@ def revoke_key(name: Annotated[str, PathParam(max_length=200)], request: Request
 def audit(
     request: Request,
     who: Admin,
-    limit: Annotated[int, Query(ge=1, le=100_000, description="newest lines")] = 1000,
+    limit: Annotated[
+        int, Query(ge=1, le=AUDIT_PAGE_MAX, description=f"newest lines, 1-{AUDIT_PAGE_MAX}")
+    ] = 100,
 ) -> list[AuditEntry]:
     return access.audit_log(_store(request), limit)
 
@@ -727,6 +751,8 @@ def create_app(rig_config: RigConfig, store: RunStore) -> FastAPI:
     app.state.store = store
     app.state.sessions = Sessions()
     problems.install(app)
+    app.state.login_limit = guard.LoginLimit()
+    app.add_middleware(guard.Guard, limit=app.state.login_limit)
     app.include_router(router)
     app.add_api_route("/", _page, include_in_schema=False, response_model=None)
     app.mount("/static", StaticFiles(directory=STATIC_DIR, check_dir=False), name="static")

@@ -21,6 +21,21 @@ log = logging.getLogger(__name__)
 
 PROBLEM_MEDIA_TYPE = "application/problem+json"
 RETRY_AFTER_S = 5  # told to a client the rig is busy for: a short run's length, a poll's pace
+DETAIL_MAX = 300
+"""Most characters of a problem's `detail` or a field's message: what was wrong, never the input whole
+(a 5 MB value quoted back would be a 5 MB answer)."""
+FIELD_ERRORS_MAX = 10  # field errors listed in one answer; the detail counts the rest
+
+
+def excerpt(text: str, limit: int = DETAIL_MAX) -> str:
+    """`text` cut to `limit` characters, saying how much was left out; control characters escaped."""
+    if any(ord(c) < 0x20 or ord(c) == 0x7F for c in text):
+        text = text.encode("unicode_escape").decode("ascii")
+    if len(text) <= limit:
+        return text
+    return f"{text[: limit - 30]}… [{len(text) - limit + 30} more characters]"
+
+
 TITLES = {
     400: "Bad request",
     401: "Not authenticated",
@@ -28,7 +43,10 @@ TITLES = {
     404: "Not found",
     405: "Method not allowed",
     409: "Conflict",
+    413: "Content too large",
+    415: "Unsupported media type",
     422: "Invalid input",
+    429: "Too many requests",
     500: "Internal server error",
     503: "Service unavailable",
 }
@@ -70,11 +88,14 @@ def problem_response(
     headers: dict[str, str] | None = None,
 ) -> JSONResponse:
     title = TITLES.get(status, "Error")
+    if errors is not None:
+        kept = errors[:FIELD_ERRORS_MAX]
+        errors = [FieldError(field=excerpt(e.field, 100), message=excerpt(e.message)) for e in kept]
     body = Problem(
         type=f"https://hdrig.invalid/problems/{status}" if status in TITLES else "about:blank",
         title=title,
         status=status,
-        detail=detail,
+        detail=excerpt(detail),
         errors=errors,
     )
     return JSONResponse(
@@ -134,5 +155,5 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception) -> JSONResponse:
-        log.exception("%s %s failed", request.method, request.url.path)
+        log.exception("%s %s failed", request.method, excerpt(request.url.path))  # no raw control bytes
         return problem_response(500, f"internal error: {type(exc).__name__}")

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictStr
 
 from rig.core.access import Role
 from rig.core.documents import RunDocument
@@ -15,27 +15,36 @@ class Request(BaseModel):
 
 
 class RunRequest(Request):
-    experiment: str = Field(description="an experiment name (GET /api/v1/experiments), or `campaign`")
+    experiment: StrictStr = Field(
+        max_length=100, description="an experiment name (GET /api/v1/experiments), or `campaign`"
+    )
     params: dict[str, Any] = Field(
         default_factory=dict,
         description="the experiment's parameters (defaults for those not given); for `campaign`, an object"
         " per experiment",
     )
-    queue: bool = Field(default=False, description="wait for the rig when it is busy, instead of 409")
-    keep_going: bool = Field(default=False, description="campaign: go on after a run aborts")
-    unit: str | None = Field(
+    queue: StrictBool = Field(
+        default=False,
+        description="wait for the rig when it is busy, instead of 409 (429 when the queue is full)",
+    )
+    keep_going: StrictBool = Field(default=False, description="campaign: go on after a run aborts")
+    unit: StrictStr | None = Field(
         default=None,
         max_length=100,
         description="the gear unit's serial number on the bench (default: the rig file's `unit:`)",
     )
-    tags: list[str] = Field(
+    tags: list[StrictStr] = Field(
         default_factory=list, max_length=50, description="free tags put on each run, to search the catalog by"
     )
 
 
 class AnalysisRequest(Request):
-    data: list[str] = Field(min_length=1, description="run ids in the store, or `latest`")
-    model: str = Field(min_length=1, description="the starting model: a preset name (GET /api/v1/models)")
+    data: list[Annotated[StrictStr, Field(max_length=200)]] = Field(
+        min_length=1, max_length=100, description="run ids in the store, or `latest`"
+    )
+    model: StrictStr = Field(
+        min_length=1, max_length=200, description="the starting model: a preset name (GET /api/v1/models)"
+    )
 
 
 class Health(BaseModel):
@@ -64,7 +73,7 @@ class RigStatus(BaseModel):
 
 
 class SessionRequest(Request):
-    key: str = Field(min_length=1, description="an API key")
+    key: StrictStr = Field(min_length=1, max_length=200, description="an API key")
 
 
 class SessionInfo(BaseModel):
@@ -79,7 +88,9 @@ class KeyRequest(Request):
     role: Role = Field(
         description="viewer reads; operator also starts, aborts and stops; admin also manages keys"
     )
-    name: str | None = Field(default=None, description="the key's name (default ROLE-N)")
+    name: StrictStr | None = Field(
+        default=None, max_length=100, description="the key's name (default ROLE-N)"
+    )
 
 
 class NewKey(BaseModel):

@@ -162,6 +162,10 @@ class LocalLab:
         # The full collection that quiet_heap makes holds the interpreter for up to ~0.5 s: make it before
         # the rig is opened and its drive's heartbeat watchdog is armed.
         with quiet_heap(), RigWorker(config, self.store) as worker:
+            # The whole plan against the open rig (its saturation, travel), still before anything moves.
+            plan = actions.plan_run(
+                experiment, params, keep_going=keep_going, unit=unit, tags=tags, rig=worker.rig
+            )
             job = worker.submit(plan)
             follower = _Follower(worker, job, progress, land)
             try:

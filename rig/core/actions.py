@@ -21,8 +21,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml
+from pydantic import ValidationError
 
-from model.errors import UserInputError
+from model.errors import UserInputError, describe_validation_error
 from model.params import load_model, preset_names
 from model.run import Run
 from rig.catalog import DEFAULT_PAGE, Cursor, page_of_runs
@@ -42,6 +43,8 @@ from rig.core.documents import (
     TrendDocument,
 )
 from rig.experiments import CAMPAIGN, CAMPAIGN_ORDER, EXPERIMENTS, experiment_named
+from rig.experiments.base import RIG_CONTEXT, ExperimentParams, RigContext
+from rig.experiments.endurance import EnduranceParams
 from rig.faults import DeviceFaultError
 from rig.interface import ModeRefusedError, Rig
 from rig.runfile import json_text
@@ -95,13 +98,16 @@ def plan_run(
     experiments: Sequence[str] = CAMPAIGN_ORDER,
     unit: str | None = None,
     tags: Sequence[str] = (),
+    rig: Rig | None = None,
 ) -> RunPlan:
     """Validate a start request before the rig is touched.
 
     One experiment takes its parameters (`{"hold_s": 0.5}`); the campaign takes them per experiment
     (`{"speed-sweep": {"hold_s": 0.5}}`) and plays `experiments` in turn (all of them by default).
     Unknown experiments and bad values are one-line errors. `unit` (the gear on the bench, instead of
-    the rig file's) and free `tags` go into the catalog with each run.
+    the rig file's) and free `tags` go into the catalog with each run. Given the `rig` the plan is for,
+    the whole plan is also checked against it (`check_plan`): speeds within its saturation, every segment
+    within its limits and travel, before anything moves.
     """
     tags = check_tags(tags)
     if unit is not None:
@@ -124,9 +130,58 @@ def plan_run(
         values = given.get(name) or {}
         if not isinstance(values, dict):
             raise UserInputError(f"run campaign: params.{name} must be an object of parameters")
-        checked = make_params(EXPERIMENTS[name], values)
+        if rig is None:
+            checked = make_params(EXPERIMENTS[name], values)
+        else:
+            checked = _params_for_rig(name, values, rig.config)
         runs.append(PlannedRun(experiment=name, params=checked.model_dump(mode="json")))
-    return RunPlan(experiment=experiment, runs=runs, keep_going=keep_going, unit=unit, tags=list(tags))
+    plan = RunPlan(experiment=experiment, runs=runs, keep_going=keep_going, unit=unit, tags=list(tags))
+    if rig is not None:
+        check_plan(plan, rig)
+    return plan
+
+
+def _params_for_rig(name: str, values: dict[str, Any], config: RigConfig) -> ExperimentParams:
+    """An experiment's parameters validated with the rig in the context (its saturation named per field)."""
+    try:
+        return EXPERIMENTS[name].Params.model_validate(values, context={RIG_CONTEXT: config})
+    except ValidationError as exc:
+        raise UserInputError(f"run {name}: {describe_validation_error(exc)}") from None
+
+
+def check_plan(plan: RunPlan, rig: Rig) -> None:
+    """Build every run's program against `rig` as it plays from its home (θ_m = 0, or the nearest end of
+    its travel) and refuse, before anything moves, one it could not play: segments beyond the rig's
+    saturation or travel, a stroke that does not fit, repeated segments. The runner checks the program
+    again from where the motor really is when the run starts."""
+    limits = rig.config.limits
+    lowest, highest = limits.travel_min_out_rad / rig.gear_ratio, limits.travel_max_out_rad / rig.gear_ratio
+    home = min(max(0.0, lowest), highest)
+    ctx = RigContext(rig.config, rig.gear_ratio, rig.torque_constant_nm_per_a, home)
+    for planned in plan.runs:
+        experiment = EXPERIMENTS[planned.experiment]
+        params = make_params(experiment, planned.params)
+        if isinstance(params, EnduranceParams):
+            # Its program repeats one checkpoint and one duty stretch for hours (minutes to build for
+            # 10,000 h): the first two checkpoints hold every kind of segment it plays.
+            two = 2.0 * params.checkpoint_every_min / 60.0
+            params = params.model_copy(update={"duration_h": min(params.duration_h, two)})
+        where = f"run {planned.experiment}"
+        try:
+            rig.check_modes(experiment.needs)
+        except ModeRefusedError:
+            continue  # refused alone when its turn comes (a campaign goes on without it)
+        try:
+            program = experiment.program(params, ctx)
+            labels = [seg.label for seg in program]
+            if len(set(labels)) != len(labels):
+                repeated = next(label for label in labels if labels.count(label) > 1)
+                raise UserInputError(f"the program plays segment {repeated!r} twice: a value is repeated")
+            for segment in program:
+                rig.check_segment(segment)
+        except UserInputError as exc:
+            text = str(exc)
+            raise UserInputError(text if text.startswith(where) else f"{where}: params: {text}") from None
 
 
 def params_from_pairs(experiment: str, pairs: Sequence[str]) -> dict[str, Any]:
@@ -310,6 +365,9 @@ def analyze_run(store: RunStore, run_id: str) -> RunDocument:
 def export_run(store: RunStore, run_id: str, fmt: str, out: str | Path) -> Path:
     """Write a run as csv, parquet or mat (a folder gets `<id>.<fmt>`)."""
     store.get(run_id)  # an unknown id is told as such; a run whose writer died is sealed first
+    target = Path(out)
+    if not target.is_dir() and not target.parent.is_dir():
+        raise UserInputError(f"--out {out}: the folder {target.parent} does not exist")
     return store.export(run_id, fmt, out)
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, ValidationInfo
 
 from model.errors import UserInputError
 from model.run import Run
@@ -26,10 +26,48 @@ class ProgramError(UserInputError):
     """The parameters are valid but do not fit this rig (its stroke, its limits); says which and why."""
 
 
-class ExperimentParams(BaseModel):
-    """Base of every experiment's parameters: unknown keys are refused, values validated with units."""
+LIST_MAX = 200
+"""Most values in one list parameter (speeds, loads): a sweep of 200 speeds both ways is hours already."""
+SPEED_MAX_RAD_S = 2000.0
+"""Largest motor speed any parameter may name [rad/s] (~19,000 rpm); the rig's own saturation, which is
+lower, is checked when a plan is made for a rig (`RIG_CONTEXT`)."""
+LOAD_MAX_NM = 10_000.0
+"""Largest torque a parameter may name [N·m]."""
+RIG_CONTEXT = "rig"
+"""Validation context key: the `RigConfig` a plan is made for, so speeds beyond its saturation are
+refused at submit time, naming the field (`Params.model_validate(values, context={RIG_CONTEXT: config})`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+
+class ExperimentParams(BaseModel):
+    """Base of every experiment's parameters: unknown keys are refused, values validated with units.
+
+    Strict: a number is a JSON number (not `"0.5"`, not `true`), a flag is a JSON boolean (not `"yes"`);
+    NaN and infinities are refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+
+def distinct_speeds(speeds: list[float], at_least: int = 1) -> list[float]:
+    """A list of motor speed magnitudes: `at_least` of them, each > 0, no repeats (a repeat would play the
+    same segment twice under one label); sorted."""
+    if len(speeds) < at_least or any(not (s > 0) for s in speeds):
+        raise ValueError(f"needs {'one' if at_least == 1 else at_least} or more speed magnitudes, each > 0")
+    if len(set(speeds)) != len(speeds):
+        raise ValueError("speeds must be distinct (a repeat plays the same pass twice)")
+    return sorted(speeds)
+
+
+def within_rig_speed(speed_rad_s: float, info: ValidationInfo, what: str = "speed") -> float:
+    """Refuse a motor speed beyond the velocity saturation of the rig the plan is made for (if any)."""
+    config = (info.context or {}).get(RIG_CONTEXT)
+    if config is not None:
+        limit = float(config.control.max_velocity_rad_s)
+        if abs(speed_rad_s) > limit:
+            raise ValueError(
+                f"{what} {speed_rad_s:g} rad/s is beyond rig {config.name!r}'s speed saturation"
+                f" {limit:g} rad/s"
+            )
+    return speed_rad_s
 
 
 @dataclass(frozen=True)

@@ -24,21 +24,26 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from model.recursive import FrictionTracker
 from model.run import Run
 from rig.experiments.base import (
+    LIST_MAX,
+    LOAD_MAX_NM,
+    SPEED_MAX_RAD_S,
     Experiment,
     ExperimentParams,
     ProgramError,
     Results,
     RigContext,
     SegmentReader,
+    distinct_speeds,
     segments_of,
+    within_rig_speed,
 )
 from rig.experiments.plots import new_figure, save_figure
 from rig.interface import Block, ControlMode, Segment
@@ -50,39 +55,76 @@ TRACK_POINTS_MAX = 512
 a run of any length keeps a track of 256–512 points (rewritten into the metadata at each new one)."""
 
 
+CHECKPOINTS_MAX = 50_000
+"""Most checkpoints in one run (10,000 h at one every 15 min is 40,000): the program is built whole."""
+
+
 class EnduranceParams(ExperimentParams):
     duration_h: float = Field(default=1.0, gt=0, le=10_000, description="duty cycle in all [h]")
     checkpoint_every_min: float = Field(
-        default=15.0, gt=0, description="duty cycle between two checkpoints [min]"
+        default=15.0, ge=1, le=10_000 * 60, description="duty cycle between two checkpoints [min]"
     )
-    duty_stroke_rad: float = Field(default=150.0, gt=0, description="motor stroke of the duty motion [rad]")
-    duty_period_s: float = Field(default=10.0, gt=0, description="one out-and-back duty motion [s]")
-    duty_load_nm: float = Field(default=2.0, description="external load on the output during duty [N·m]")
-    speeds_rad_s: list[float] = Field(
-        default=[5.0, 20.0, 50.0], description="checkpoint speeds, each run forward and back [rad/s]"
+    duty_stroke_rad: float = Field(
+        default=150.0, gt=0, le=1e5, description="motor stroke of the duty motion [rad]"
+    )
+    duty_period_s: float = Field(
+        default=10.0, ge=0.1, le=3600, description="one out-and-back duty motion [s]"
+    )
+    duty_load_nm: float = Field(
+        default=2.0,
+        ge=-LOAD_MAX_NM,
+        le=LOAD_MAX_NM,
+        description="external load on the output during duty [N·m]",
+    )
+    speeds_rad_s: list[Annotated[float, Field(gt=0, le=SPEED_MAX_RAD_S)]] = Field(
+        default=[5.0, 20.0, 50.0],
+        max_length=LIST_MAX,
+        description="checkpoint speeds, distinct, each run forward and back [rad/s]",
     )
     settle_s: float = Field(default=0.3, gt=0, le=10, description="time to reach a held speed [s]")
     hold_s: float = Field(default=1.0, gt=0, le=60, description="averaging window per held speed [s]")
     stiffness_load_nm: float = Field(
-        default=5.0, gt=0, description="output load of the loaded holds, for the stiffness [N·m]"
+        default=5.0,
+        gt=0,
+        le=LOAD_MAX_NM,
+        description="output load of the loaded holds, for the stiffness [N·m]",
     )
-    pass_speed_rad_s: float = Field(default=2.0, gt=0, description="speed of the position pass [rad/s]")
-    pass_stroke_rad: float = Field(default=20.0, gt=0, description="motor stroke of the position pass [rad]")
+    pass_speed_rad_s: float = Field(
+        default=2.0, gt=0, le=SPEED_MAX_RAD_S, description="speed of the position pass [rad/s]"
+    )
+    pass_stroke_rad: float = Field(
+        default=20.0, gt=0, le=1e5, description="motor stroke of the position pass [rad]"
+    )
     track_memory_s: float = Field(
-        default=60.0, gt=0, description="how far back the online friction tracker looks [s]"
+        default=60.0, ge=0.1, le=86_400, description="how far back the online friction tracker looks [s]"
     )
     track_every_s: float = Field(
         default=30.0,
-        gt=0,
+        ge=0.1,
+        le=86_400,
         description="run time between two kept track points [s] (doubled as the track grows long)",
     )
 
     @field_validator("speeds_rad_s")
     @classmethod
-    def _positive(cls, speeds: list[float]) -> list[float]:
-        if len(speeds) < 2 or any(not (s > 0) for s in speeds):
-            raise ValueError("needs two or more speed magnitudes, each > 0 (a level and a slope)")
-        return sorted(speeds)
+    def _positive(cls, speeds: list[float], info: ValidationInfo) -> list[float]:
+        for speed in speeds:
+            within_rig_speed(speed, info)
+        return distinct_speeds(speeds, at_least=2)  # a level and a slope
+
+    @field_validator("pass_speed_rad_s")
+    @classmethod
+    def _pass_within_rig(cls, speed: float, info: ValidationInfo) -> float:
+        return within_rig_speed(speed, info, "pass speed")
+
+    @model_validator(mode="after")
+    def _checkpoints_bounded(self) -> EnduranceParams:
+        count = self.duration_h * 60.0 / self.checkpoint_every_min
+        if count > CHECKPOINTS_MAX:
+            raise ValueError(
+                f"checkpoint_every_min: {count:.0f} checkpoints over duration_h; at most {CHECKPOINTS_MAX}"
+            )
+        return self
 
 
 def _label(checkpoint: int, name: str) -> str:

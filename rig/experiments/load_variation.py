@@ -9,12 +9,21 @@ signature of `load_dependent_friction` (c_Ts·|T_s| on the motor, T_s ≈ τ_ext
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from model.run import Run
-from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext
+from rig.experiments.base import (
+    LIST_MAX,
+    LOAD_MAX_NM,
+    SPEED_MAX_RAD_S,
+    Experiment,
+    ExperimentParams,
+    Results,
+    RigContext,
+)
 from rig.experiments.plots import new_figure, save_figure
 from rig.experiments.speed_sweep import SpeedSweepParams, coulomb_viscous_fit, friction_table, sweep_program
 from rig.interface import ControlMode, Segment
@@ -25,10 +34,12 @@ class LoadVariationParams(ExperimentParams):
     # torque ripple at speed need the rest, and a saturated velocity loop would bias the averages.
     loads_nm: list[float] = Field(
         default=[0.0, 5.0, 10.0, 15.0],
+        max_length=LIST_MAX,
         description="external load torques τ_ext at the output, one sweep each, run in rising order [N·m]",
     )
-    speeds_rad_s: list[float] = Field(
+    speeds_rad_s: list[Annotated[float, Field(gt=0, le=SPEED_MAX_RAD_S)]] = Field(
         default=[1.0, 5.0, 20.0, 100.0],
+        max_length=LIST_MAX,
         description="motor speed magnitudes of each sweep; each is run forward and backward [rad/s]",
     )
     settle_s: float = Field(
@@ -54,14 +65,14 @@ class LoadVariationParams(ExperimentParams):
             raise ValueError("needs one or more load torques")
         if len(set(loads)) != len(loads):
             raise ValueError("load torques must be distinct")
-        if any(abs(tau) > 1e4 for tau in loads):
-            raise ValueError("load torques must be within ±1e4 N·m")
+        if any(abs(tau) > LOAD_MAX_NM for tau in loads):
+            raise ValueError(f"load torques must be within ±{LOAD_MAX_NM:g} N·m")
         return sorted(loads)
 
     @field_validator("speeds_rad_s")
     @classmethod
-    def _positive_speeds(cls, speeds: list[float]) -> list[float]:
-        return SpeedSweepParams._positive_speeds(speeds)  # the sweep's own rule, one copy
+    def _positive_speeds(cls, speeds: list[float], info: ValidationInfo) -> list[float]:
+        return SpeedSweepParams._positive_speeds(speeds, info)  # the sweep's own rule, one copy
 
     def sweep(self, tau_ext_nm: float) -> SpeedSweepParams:
         """The speed sweep run at one load."""

@@ -8,27 +8,35 @@ the stroke, so the program returns to where it started and both directions see t
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from model.run import Run
 from rig.experiments.base import (
+    LIST_MAX,
+    LOAD_MAX_NM,
+    SPEED_MAX_RAD_S,
     Experiment,
     ExperimentParams,
     ProgramError,
     Results,
     RigContext,
+    distinct_speeds,
     segments_of,
+    within_rig_speed,
 )
 from rig.experiments.plots import new_figure, save_figure
 from rig.interface import ControlMode, Segment
 
 
 class SpeedSweepParams(ExperimentParams):
-    speeds_rad_s: list[float] = Field(
+    speeds_rad_s: list[Annotated[float, Field(gt=0, le=SPEED_MAX_RAD_S)]] = Field(
         default=[0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0],
-        description="motor speed magnitudes; each is run forward and backward [rad/s]",
+        min_length=1,
+        max_length=LIST_MAX,
+        description="motor speed magnitudes, distinct; each is run forward and backward [rad/s]",
     )
     settle_s: float = Field(
         default=0.3, gt=0, le=10, description="time to reach steady speed, not averaged [s]"
@@ -42,14 +50,19 @@ class SpeedSweepParams(ExperimentParams):
         le=1,
         description="share of the free stroke ahead a pass may use; shortens holds [–]",
     )
-    tau_ext_nm: float = Field(default=0.0, description="external load torque during the sweep [N·m]")
+    tau_ext_nm: float = Field(
+        default=0.0,
+        ge=-LOAD_MAX_NM,
+        le=LOAD_MAX_NM,
+        description="external load torque during the sweep [N·m]",
+    )
 
     @field_validator("speeds_rad_s")
     @classmethod
-    def _positive_speeds(cls, speeds: list[float]) -> list[float]:
-        if not speeds or any(not (s > 0) for s in speeds):
-            raise ValueError("needs one or more speed magnitudes, each > 0")
-        return sorted(speeds)
+    def _positive_speeds(cls, speeds: list[float], info: ValidationInfo) -> list[float]:
+        for speed in speeds:
+            within_rig_speed(speed, info)
+        return distinct_speeds(speeds)
 
 
 def sweep_program(params: SpeedSweepParams, ctx: RigContext, prefix: str = "") -> list[Segment]:
