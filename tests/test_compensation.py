@@ -283,4 +283,6 @@ def test_friction_twenty_percent_off_keeps_most_of_the_gain_on_sine_and_ramp(
     # simulated rig at least 2× better still (measured: 2.7–2.8× sine, 5–6× stick-slip).
     assert compensation_metrics[f"improvement_sine_{tag}"] >= 2.0
     assert compensation_metrics[f"improvement_stick_slip_{tag}"] >= 2.0
-    assert f"improvement_step_{tag}" in compensation_metrics
+    # The step's RMS ratio was ≈ 1 by construction (issue 31): the step reports overshoot and settling.
+    assert f"improvement_step_{tag}" not in compensation_metrics
+    assert np.isfinite(compensation_metrics[f"overshoot_pct_step_{tag}"])

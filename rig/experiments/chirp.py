@@ -17,10 +17,17 @@ loop's transient), then `periods` whole periods are analyzed. Why so:
   f^(−1/2) and constant acceleration's f^(−1): more excitation where the current it asks
   (~2π·f·J·amplitude) is small against friction, less at the load resonance, where the position loop
   drives an almost undamped load (the seed asks ~6 A at most, under the drive's 10 A);
-- the harmonics of the position-dependent friction, n·mean/2π (25 rad/s: 4.0, 8.0, 11.9 Hz...), are
-  what limits the coherence of the plant FRFs on the seed, as they would on a real harmonic drive.
+- the position-dependent friction is a torque that follows θ_m, which follows the reference: over
+  periods that each span the same motor turns it would repeat with the excitation and bias every line
+  in a way coherence cannot show (4–6 dB below 6 Hz on the seed). So the mean speed is moved to the
+  nearest at which a period spans whole motor turns plus 1/`periods` of a turn (`sweep_mean_speed`):
+  each friction harmonic starts each period 1/`periods` of its cycle further on and its response sums
+  to zero over the periods (harmonics that are multiples of `periods` excepted); the slow Coulomb
+  level C(θ_m), quadratic in θ_m along the ramp, is taken out as a polynomial trend in time
+  (`periodic_records`); and the sweep back over the same stretch flips the friction's sign, so its
+  slope against position (a small spring) cancels between the sweeps.
 
-Estimated from cross-spectra (scipy.signal.csd, averaged over the analyzed periods of both sweeps), the
+Estimated at the excitation's lines from the DFTs of each analyzed period (trend taken out), the
 reference r being the output set-point with the mean-speed ramp taken out (of it and of θ_l alike), so
 that every analyzed signal is periodic:
 - `frf_speed`: plant, motor current command i_cmd → measured motor speed ω_m [rad/s per A];
@@ -28,9 +35,19 @@ that every analyzed signal is periodic:
 - `frf_closed_loop`: position system, output set-point → θ_l [rad per rad].
 In closed loop the plain H1 = P_uy/P_uu is biased wherever noise fed back through the controller is not
 small against the excitation; the reference is uncorrelated with it, so the plant is estimated as
-H = P_ry/P_ru (the indirect, "joint input–output" estimate), its coherence the weaker of γ²(r, u) and
-γ²(r, y). The measured FRFs include the drive's sampling chain (command held one cycle, speed from
-filtered encoder differences).
+H = Σ R̄·Y / Σ R̄·U over the periods of both sweeps (the indirect, "joint input–output" estimate), its
+coherence the weaker of γ²(r, u) and γ²(r, y). Each table also carries the 1σ band of H from the data:
+the spread of the per-period estimates Y/U over √(periods) (`magnitude_std_db`, `phase_std_deg`); it
+holds the friction's per-period response that the average cancels, so it is wider than the average's
+error where friction dominates. The measured FRFs include the drive's sampling chain (command held one
+cycle, speed from filtered encoder differences).
+
+Metrics: `coherence_1_10hz_<frf>`: mean coherence over the lines from 1 to 10 Hz;
+`antiresonance_hz`, `resonance_hz`: of i_cmd → ω_m (`resonance`), interpolated between the lines,
+`resonance_resolution_hz` their stated resolution (twice the jackknife σ over the fitted lines, or the
+line spacing when not interpolated); `line_spacing_hz`: 1/period; `sweep_mean_speed_rad_s`: the mean
+motor speed used; `closed_loop_peak_hz`, `closed_loop_peak_db`: the highest coherent line of
+set-point → θ_l; `closed_loop_bandwidth_hz`: its first coherent line below −3 dB.
 """
 
 from __future__ import annotations
@@ -40,7 +57,6 @@ from pathlib import Path
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
-from scipy import signal
 
 from model.errors import UserInputError
 from model.run import Run
@@ -145,6 +161,23 @@ def excitation(params: ChirpParams, ctx: RigContext) -> tuple[np.ndarray, np.nda
     return params.speed_amp_motor_rad_s * wave / np.max(np.abs(wave)), freq_hz
 
 
+def sweep_mean_speed(params: ChirpParams, ctx: RigContext) -> float:
+    """The mean motor speed the sweeps ride on [rad/s]: `mean_speed_motor_rad_s` moved to the nearest
+    speed at which one period spans a whole number of motor turns plus 1/`periods` of a turn.
+
+    Then a friction harmonic n·θ_m (n cycles per motor turn) starts each analyzed period 2π·n/periods
+    further on, so its response, however the excitation modulates it, sums to zero over the periods
+    (n not a multiple of `periods`): the average over periods keeps the response to the excitation
+    alone. Never at or below the excitation's peak, so the motor still never reverses.
+    """
+    period_s = ctx.cycles(params.period_s) / ctx.rate_hz
+    turn_rad, step = 2 * np.pi, 1.0 / params.periods
+    turns = max(0, round(params.mean_speed_motor_rad_s * period_s / turn_rad - step))
+    while turn_rad * (turns + step) / period_s <= params.speed_amp_motor_rad_s:
+        turns += 1
+    return float(turn_rad * (turns + step) / period_s)
+
+
 def speed_profile(params: ChirpParams, ctx: RigContext) -> list[tuple[str, np.ndarray]]:
     """Motor speed per cycle of each segment: speed up, sweep out, turn, sweep back, slow down."""
 
@@ -154,7 +187,7 @@ def speed_profile(params: ChirpParams, ctx: RigContext) -> list[tuple[str, np.nd
     limits, start_out = ctx.config.limits, ctx.theta_m0 * ctx.gear_ratio
     # Out towards the side with more room, so that the stroke used is the larger free one.
     ahead, behind = limits.travel_max_out_rad - start_out, start_out - limits.travel_min_out_rad
-    mean = params.mean_speed_motor_rad_s * (1.0 if ahead >= behind else -1.0)
+    mean = sweep_mean_speed(params, ctx) * (1.0 if ahead >= behind else -1.0)
     wave, _ = excitation(params, ctx)
     lead = times(params.period_s)
     sweep = np.tile(wave, params.periods + 1)
@@ -178,11 +211,44 @@ def analyzed_rows(run: Run, label: str, params: ChirpParams, ctx: RigContext) ->
     return slice(rows.start + cycles, rows.start + cycles * (1 + params.periods))
 
 
+TREND_DEGREE = 3
+"""Degree of the polynomial trend taken out of each sweep before its periods are averaged: the slow
+Coulomb level C(θ_m) is quadratic in the position, which rides on a ramp; one degree to spare."""
+
+
+def periodic_records(x: np.ndarray, cycles: int, periods: int) -> np.ndarray:
+    """`x` over whole periods as a (periods × cycles) array, a polynomial trend in time taken out.
+
+    The trend (degree TREND_DEGREE, no constant) is fitted by least squares to what the periodic part
+    leaves: both x and the trend's regressors have their average over periods taken out first, so a
+    component repeating every period is never mistaken for trend.
+    """
+    rows = cycles * periods
+    t = np.linspace(-1.0, 1.0, rows)
+    basis = np.stack([t**degree for degree in range(1, TREND_DEGREE + 1)], axis=1)
+
+    def off_periodic(v: np.ndarray) -> np.ndarray:
+        w = v.reshape(periods, cycles, -1)
+        return (w - w.mean(axis=0)).reshape(rows, -1)
+
+    coef, *_ = np.linalg.lstsq(off_periodic(basis), off_periodic(x[:, None])[:, 0], rcond=None)
+    return np.asarray((x - basis @ coef).reshape(periods, cycles))
+
+
 def frf_tables(run: Run, params: ChirpParams, ctx: RigContext) -> dict[str, dict[str, np.ndarray]]:
-    """The FRFs of FRFS at the excitation's lines: freq_hz, magnitude_db, phase_deg, coherence each."""
+    """The FRFs of FRFS at the excitation's lines.
+
+    Columns: freq_hz; magnitude_db, phase_deg (H = Σ R̄·Y / Σ R̄·U over every analyzed period of both
+    sweeps, each sweep's polynomial trend taken out first, see `periodic_records`); coherence (the weaker
+    of γ²(r, u) and γ²(r, y) over those periods); magnitude_std_db, phase_std_deg (1σ of H from the
+    spread of the per-period estimates Y/U: their standard deviation over √(number of periods),
+    linearized in dB and degrees: the confidence band from the data).
+    """
     cycles = ctx.cycles(params.period_s)
-    spectra: dict[tuple[str, str], np.ndarray] = {}
-    names = ("reference", "current", "speed", "load")
+    period_s = cycles / ctx.rate_hz
+    _, lines_hz = excitation(params, ctx)
+    bins = np.rint(lines_hz * period_s).astype(int)
+    spectra: dict[str, list[np.ndarray]] = {name: [] for name in ("reference", "current", "speed", "load")}
     for label in SWEEPS:
         rows = analyzed_rows(run, label, params, ctx)
         set_out = ctx.gear_ratio * run["setpoint"][rows.start - 1 : rows.stop]
@@ -194,43 +260,45 @@ def frf_tables(run: Run, params: ChirpParams, ctx: RigContext) -> dict[str, dict
             "speed": run["omega_m"][rows],
             "load": run["theta_l"][rows] - ramp,
         }
-        for b in names:
-            for a in dict.fromkeys(("reference", b)):  # once when b is the reference
-                freq, p = signal.csd(
-                    x[a],
-                    x[b],
-                    fs=ctx.rate_hz,
-                    window="boxcar",
-                    nperseg=cycles,
-                    noverlap=0,
-                    detrend="constant",
-                )
-                spectra[a, b] = spectra.get((a, b), 0) + p / len(SWEEPS)
-    _, lines = excitation(params, ctx)
-    at_lines = np.searchsorted(freq, lines - 1e-9)
+        for name, values in x.items():
+            records = periodic_records(np.asarray(values, dtype=float), cycles, params.periods)
+            spectra[name].append(np.fft.rfft(records, axis=1)[:, bins])
+    per_period = {name: np.concatenate(parts) for name, parts in spectra.items()}  # (records × lines)
+    reference = per_period["reference"]
 
-    def coherence(a: str, b: str) -> np.ndarray:
-        return np.asarray(np.abs(spectra[a, b]) ** 2 / (spectra[a, a].real * spectra[b, b].real))
+    def cross(a: str) -> np.ndarray:
+        return np.asarray(np.sum(np.conj(reference) * per_period[a], axis=0))
+
+    def coherence(a: str) -> np.ndarray:
+        power = np.sum(np.abs(per_period[a]) ** 2, axis=0) * np.sum(np.abs(reference) ** 2, axis=0)
+        return np.asarray(np.abs(cross(a)) ** 2 / power)
 
     tables = {}
     for name, (u, y, _, _) in FRFS.items():
-        h = (spectra["reference", y] / spectra["reference", u])[at_lines]
-        gamma2 = np.minimum(coherence("reference", u), coherence("reference", y))
+        h = cross(y) / cross(u)
+        each = per_period[y] / per_period[u]
+        count = each.shape[0]
+        spread = np.sqrt(np.sum(np.abs(each - each.mean(axis=0)) ** 2, axis=0) / (count - 1) / count)
+        relative = spread / np.abs(h)
         tables[name] = {
-            "freq_hz": freq[at_lines],
+            "freq_hz": lines_hz,
             "magnitude_db": 20 * np.log10(np.abs(h)),
             "phase_deg": np.degrees(np.unwrap(np.angle(h))),
-            "coherence": gamma2[at_lines],
+            "coherence": np.minimum(coherence(u), coherence(y)),
+            "magnitude_std_db": 20 / np.log(10) * relative,
+            "phase_std_deg": np.degrees(relative),
         }
     return tables
 
 
-def resonance(table: dict[str, np.ndarray], coherence_min: float) -> tuple[float, float] | None:
-    """(antiresonance, resonance) frequencies of a current → speed FRF, or None if not seen [Hz].
+def resonance(table: dict[str, np.ndarray], coherence_min: float) -> tuple[float, float, float] | None:
+    """(antiresonance, resonance, resolution) of a current → speed FRF, or None if not seen [Hz].
 
-    The integrator of the rigid body is taken out (|H|·f is flat at low frequency); the antiresonance
-    is its deepest coherent dip, the resonance its highest coherent peak above the dip, if the peak
-    stands 10 dB over the dip and is not the last coherent point (a peak must come back down).
+    Found on the lines: the integrator of the rigid body is taken out (|H|·f is flat at low frequency);
+    the antiresonance is its deepest coherent dip, the resonance its highest coherent peak above the dip,
+    if the peak stands 10 dB over the dip and is not the last coherent point (a peak must come back
+    down). Then interpolated between the lines (`interpolated_modes`) when that fit holds; the
+    resolution is then twice the larger jackknife σ of the two, else the line spacing.
     """
     coherent = table["coherence"] >= coherence_min
     freq = table["freq_hz"][coherent]
@@ -243,7 +311,65 @@ def resonance(table: dict[str, np.ndarray], coherence_min: float) -> tuple[float
     peak = dip + 1 + int(np.argmax(level_db[dip + 1 :]))
     if peak == freq.size - 1 or level_db[peak] - level_db[dip] < 10.0:
         return None
-    return float(freq[dip]), float(freq[peak])
+    on_lines = float(freq[dip]), float(freq[peak])
+    between = interpolated_modes(table, coherent, on_lines)
+    if between is None:
+        return *on_lines, float(np.min(np.diff(table["freq_hz"])))
+    anti, res, sigma_anti, sigma_res = between
+    return anti, res, 2.0 * max(sigma_anti, sigma_res)
+
+
+MODE_SPAN = 0.25
+"""Lines from (1 − MODE_SPAN)·antiresonance to (1 + MODE_SPAN)·resonance enter the interpolation."""
+
+
+def _levy_modes(freq: np.ndarray, g: np.ndarray) -> tuple[float, float] | None:
+    """(f_a, f_r) of g ≈ c·(f_a² − f²)/(f_r² − f²) by Levy's linear least squares, or None [Hz]."""
+    design = np.stack([g, -np.ones_like(g), freq**2], axis=1)
+    (pole, zero_times_c, c), *_ = np.linalg.lstsq(design, g * freq**2, rcond=None)
+    if c == 0:
+        return None
+    anti_sq, res_sq = (zero_times_c / c).real, pole.real
+    if anti_sq <= 0 or res_sq <= 0:
+        return None
+    return math.sqrt(anti_sq), math.sqrt(res_sq)
+
+
+def interpolated_modes(
+    table: dict[str, np.ndarray], coherent: np.ndarray, on_lines: tuple[float, float]
+) -> tuple[float, float, float, float] | None:
+    """(antiresonance, resonance, their jackknife σ each) [Hz] between the lines, or None when the fit
+    does not hold.
+
+    Near its modes a current → speed FRF is H·f ≈ c·(f_a² − f²)/(f_r² − f²) (two-inertia, the integrator
+    taken out; f_a², f_r² complex with the damping). Multiplied out this is linear in c, c·f_a² and f_r²
+    (Levy's method), solved by complex least squares over the coherent lines around the modes; the
+    frequencies are √Re f_a², √Re f_r². Kept only if the antiresonance stays below the resonance and both
+    inside the lines fitted. Their σ is the jackknife's over the fitted lines (each left out in turn):
+    how much the answer depends on the lines the grid happens to offer.
+    """
+    low, high = on_lines
+    pick = (
+        coherent & (table["freq_hz"] >= (1 - MODE_SPAN) * low) & (table["freq_hz"] <= (1 + MODE_SPAN) * high)
+    )
+    if np.count_nonzero(pick) < 5:
+        return None
+    freq = table["freq_hz"][pick]
+    g = 10 ** (table["magnitude_db"][pick] / 20) * np.exp(1j * np.radians(table["phase_deg"][pick])) * freq
+    found = _levy_modes(freq, g)
+    if found is None or not freq[0] < found[0] < found[1] < freq[-1]:
+        return None
+    left_out = []
+    for drop in range(freq.size):
+        keep = np.arange(freq.size) != drop
+        again = _levy_modes(freq[keep], g[keep])
+        if again is None:
+            return None
+        left_out.append(again)
+    spread = np.asarray(left_out)
+    n = freq.size
+    sigma = np.sqrt((n - 1) / n * np.sum((spread - spread.mean(axis=0)) ** 2, axis=0))
+    return found[0], found[1], float(sigma[0]), float(sigma[1])
 
 
 class Chirp(Experiment):
@@ -278,12 +404,14 @@ class Chirp(Experiment):
             metrics[f"coherence_1_10hz_{name.removeprefix('frf_')}"] = float(
                 np.mean(table["coherence"][in_band])
             )
+        metrics["line_spacing_hz"] = float(ctx.rate_hz / ctx.cycles(params.period_s))
+        metrics["sweep_mean_speed_rad_s"] = sweep_mean_speed(params, ctx)
         notes = []
         found = resonance(tables["frf_speed"], params.coherence_min)
         if found is None:
             notes.append("no resonance seen in i_cmd → ω_m among the coherent points")
         else:
-            metrics["antiresonance_hz"], metrics["resonance_hz"] = found
+            metrics["antiresonance_hz"], metrics["resonance_hz"], metrics["resonance_resolution_hz"] = found
         closed = tables["frf_closed_loop"]
         coherent = closed["coherence"] >= params.coherence_min
         if np.any(coherent):

@@ -9,9 +9,16 @@ last 50 ms give the zero of its angles, so an earlier variant's residual stick d
 later one.
 
 Per motion: the RMS of the load's tracking error θ_l − r·θ_sp (sine: after the first period; ramp: after
-`skip_s` in each direction, lag included) off and on and their ratio `improvement_<motion>`, the same
-ratio per friction error; for the ramp also the stick-slip amplitude (peak-to-peak of the detrended error,
-as `ramp` computes it) off and on, `improvement_stick_slip`. A variant that tracks worse than no
+`skip_s` in each direction, lag included) off and on, `rms_error_<motion>_<variant>_rad`, and for the sine
+and the ramp their ratio `improvement_<motion>` (off over on), the same ratio per friction error. The
+step's RMS error is mostly the step itself, the same with or without feed-forward, so its ratio would be
+≈ 1 by construction; for the step the figures are what feed-forward can change, each the mean over the
+two steps (`step-to`, `step-back`) of the load θ_l − θ_l(zero) against r·(θ_sp − θ_m0), by the `step`
+experiment's `step_metrics` with its default band and steady window: `overshoot_pct_step_<variant>`
+(how far past the new set-point the load goes, % of the step) and `settling_s_step_<variant>` (time after
+which it stays within ±2 % of the step of it, NaN if it does not settle). For the ramp also the
+stick-slip amplitude (peak-to-peak of the detrended error, as `ramp` computes it) off and on,
+`improvement_stick_slip`. A variant that tracks worse than no
 compensation is named in the notes.
 
 It needs a model file (`--set model=FILE`): on a simulated rig, one fitted (`hdrig fit`) on a campaign
@@ -34,6 +41,7 @@ from model.run import Run
 from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext, segment_rows
 from rig.experiments.plots import new_figure, save_figure
 from rig.experiments.tracking import (
+    STEP_LABELS,
     ZERO_WINDOW_S,
     Ramp,
     RampParams,
@@ -42,6 +50,7 @@ from rig.experiments.tracking import (
     Step,
     StepParams,
     detrended,
+    step_metrics,
 )
 from rig.interface import ControlMode, Segment
 
@@ -209,7 +218,25 @@ class Compensation(Experiment):
                 pp.append(np.ptp(detrended(t[keep], e[keep])))
             return {"rms": float(np.sqrt(np.mean(rms))), "stick_slip": float(np.mean(pp))}
         errors = np.concatenate([self._error(run, ctx, motion, variant, label)[1] for label in labels])
-        return {"rms": float(np.sqrt(np.mean(errors**2)))}
+        figures = {"rms": float(np.sqrt(np.mean(errors**2)))}
+        step = MOTION_PARAMS["step"]
+        assert isinstance(step, StepParams)
+        steps = []
+        for label in labels:
+            if label.removeprefix(f"{motion}-{variant.tag}-") not in STEP_LABELS:
+                continue
+            t, e = self._error(run, ctx, motion, variant, label)
+            rows = segment_rows(run, label)
+            target = ctx.gear_ratio * (run["setpoint"][rows] - ctx.theta_m0)
+            before = ctx.gear_ratio * (run["setpoint"][rows.start - 1] - ctx.theta_m0)
+            steps.append(
+                step_metrics(
+                    t, target + e, before, float(target[0]), step.band_fraction, ctx.cycles(step.steady_s)
+                )
+            )
+        figures["overshoot_pct"] = float(np.mean([m["overshoot_pct"] for m in steps]))
+        figures["settling_s"] = float(np.mean([m["settling_s"] for m in steps]))
+        return figures
 
     def analyze(self, run: Run, params: CompensationParams, ctx: RigContext) -> Results:
         metrics: dict[str, float | int | str] = {}
@@ -226,6 +253,9 @@ class Compensation(Experiment):
             for variant in variants(params):
                 got = figures[variant.tag]
                 metrics[f"rms_error_{motion}_{variant.tag}_rad"] = got["rms"]
+                for quantity in ("overshoot_pct", "settling_s"):
+                    if quantity in got:
+                        metrics[f"{quantity}_{motion}_{variant.tag}"] = got[quantity]
                 table["motion"].append(index)
                 table["friction_scale"].append(
                     0.0 if variant.friction_scale is None else variant.friction_scale
@@ -235,7 +265,8 @@ class Compensation(Experiment):
                 if variant.friction_scale is None:
                     continue
                 suffix = "" if variant.tag == "on" else f"_{variant.tag}"
-                metrics[f"improvement_{motion}{suffix}"] = off["rms"] / got["rms"]
+                if motion != "step":
+                    metrics[f"improvement_{motion}{suffix}"] = off["rms"] / got["rms"]
                 if got["rms"] > off["rms"]:
                     notes.append(
                         f"{motion}, {variant.tag}: RMS error {got['rms']:.4g} rad is worse than without"
@@ -259,11 +290,17 @@ class Compensation(Experiment):
     ) -> list[Path]:
         paths = []
         for motion in MOTIONS:
-            improvement = results.metrics.get(f"improvement_{motion}", float("nan"))
+            if motion == "step":
+                m = results.metrics
+                gain = (
+                    f"overshoot {float(m['overshoot_pct_step_off']):.3g} →"
+                    f" {float(m['overshoot_pct_step_on']):.3g} %, settling"
+                    f" {float(m['settling_s_step_off']):.3g} → {float(m['settling_s_step_on']):.3g} s"
+                )
+            else:
+                gain = f"RMS {float(results.metrics.get(f'improvement_{motion}', float('nan'))):.3g}× lower"
             fig, ax = new_figure(
-                f"{motion}: load tracking error without and with the model's feed-forward"
-                f" (RMS {float(improvement):.3g}× lower)",
-                2,
+                f"{motion}: load tracking error without and with the model's feed-forward ({gain})", 2
             )
             for variant in variants(params):
                 labels = _motion_labels(motion, variant, ctx)
