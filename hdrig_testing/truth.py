@@ -133,6 +133,7 @@ class Check:
     rel_tol: float = 0.0
     reason: str = ""  # why the tolerance is what it is
     open_issue: str | None = None  # known to fail today, and why (the fix that removes the mark)
+    run_tol: Callable[[TruthRun], float] | None = None  # a tolerance the run's settings set, added
     bounds: Callable[[TruthRun, str], tuple[float, float]] | None = None
     """For a metric that is itself a bound (a bracket's end, a stated resolution): the interval (lo, hi]
     in which the *truth* must lie for this measured value, instead of a tolerance around the truth."""
@@ -194,7 +195,8 @@ def evaluate(tr: TruthRun) -> list[Outcome]:
             continue
         truth_value = float(check.truth(tr, key))
         bounds = check.bounds(tr, key) if check.bounds is not None else None
-        out.append(Outcome(key, float(value), truth_value, check.tolerance(truth_value), check, bounds))
+        tolerance = check.tolerance(truth_value) + (check.run_tol(tr) if check.run_tol is not None else 0.0)
+        out.append(Outcome(key, float(value), truth_value, tolerance, check, bounds))
     return out
 
 
@@ -568,7 +570,6 @@ _add(
         _pulse_peak_speed,
         rel_tol=0.005,
         reason="true peak |ω_m|; an encoder difference over one 1 ms cycle rounds the peak by < 0.5 %",
-        open_issue="issue 31 item 4: the peak comes from the drive's filtered speed (H6)",
     ),
     Check(
         "mean_peak_current_a",
@@ -588,7 +589,6 @@ _add(
         _pulse_stop,
         abs_tol=1.5e-3,
         reason="true stuck flag; the last moving sample is within a cycle, and 0.1 rad/s → 0 takes < 0.2 ms",
-        open_issue="issue 31 item 4: the stop comes from the drive's filtered speed (H6)",
     ),
     Check(r"pulses_not_(moving|at_rest)", _pulse_counts, reason="counted on the true θ_m, ω_m: exact"),
     Check(
@@ -843,15 +843,31 @@ def _ramp_stuck(tr: TruthRun, key: str) -> float:
     return float(np.sum(ends - starts) / len(track.t_s))
 
 
+KE_TOL = 0.05
+"""The kinematic error's amplitude is estimated within 5 %: what the transmission error θ_l − r·θ_m shows
+differs from A by J_l·(k·ω_m)²/K_s (the load's inertia, 2 % at the seed ramp's 0.2 rad/s), plus 3 %."""
+
+
+def _ke_amplitude(tr: TruthRun) -> float:
+    return float(tr.p[k.KE_A]) if tr.model.kinematic_error else 0.0
+
+
 _add(
     "ramp",
     Check(
-        r"stick_slip_(pp|rms)_rad",
+        "stick_slip_pp_rad",
         _ramp_stick_slip,
-        rel_tol=0.1,
-        reason="true θ_l less the kinematic error; 10 % leaves room for the 2 µrad noise on a ~1e-4 rad"
-        " figure",
-        open_issue="issue 31 item 3: the figure is mostly the kinematic error (H5)",
+        abs_tol=2e-5,
+        run_tol=lambda tr: 2 * KE_TOL * _ke_amplitude(tr),
+        reason="true θ_l less the true kinematic error; what the experiment subtracts is its estimate, whose"
+        " p-p is allowed 5 % of 2A (kinematic_error_pp_rad), plus 5σ of noise at each end",
+    ),
+    Check(
+        "stick_slip_rms_rad",
+        _ramp_stick_slip,
+        abs_tol=3e-6,
+        run_tol=lambda tr: KE_TOL * _ke_amplitude(tr) / math.sqrt(2),
+        reason="as the p-p: the RMS of the kinematic estimate's allowed error, 5 % of A/√2, plus noise",
     ),
     Check(
         r"ripple_pp_rad",
@@ -863,8 +879,11 @@ _add(
     Check(
         "kinematic_error_pp_rad",
         _ramp_kinematic_pp,
-        rel_tol=0.05,
-        reason="plant law 2A; fitted on the sliding samples only, with the twist's level beside it: 5 %",
+        rel_tol=KE_TOL,
+        reason="plant law 2A (the p-p of A·sin(k·θ_m + φ) over the rows): 5 %, of which 2 % the load's"
+        " inertia J_l·(k·ω_m)²/K_s adds to what θ_l − r·θ_m shows",
+        open_issue="the ramp's kinematic-error fit is 7.8 % high on the seed (0.002156 rad against 2A ="
+        " 0.002): the load's dynamics leak into it (H5)",
     ),
     Check(
         "kinematic_error_cycles_per_turn",
@@ -969,11 +988,9 @@ _add(
     Check(
         r"(anti)?resonance_hz",
         _chirp_law,
-        abs_tol=0.5,
-        reason="plant law, linearized (K_s, J_m, J_l, r); read at lines 1/period_s apart: half a line"
-        " (0.5 Hz at the harness's 1 s period)",
-        open_issue="issue 31 items 2, 5: FRF biased by position-dependent friction, frequencies not"
-        " interpolated between lines (H6)",
+        run_tol=lambda tr: 0.5 * _line_spacing(tr),
+        reason="plant law, linearized (K_s, J_m, J_l, r); half a line of the excitation (0.25 Hz at the"
+        " default 2 s period): no worse than the nearest line; the stated resolution is checked apart",
     ),
     Check(
         r"closed_loop_(peak_hz|bandwidth_hz)",
