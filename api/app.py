@@ -19,15 +19,18 @@ from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
 
 import numpy as np
+import yaml
 from fastapi import APIRouter, Depends, FastAPI, Header, Query, Request, Response
 from fastapi import Path as PathParam
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
 
 from api import auth, guard, problems
 from api.auth import Principal, Sessions
+from api.paths import HideServerPaths, PathScrubber
 from api.problems import FieldError, Problem, ProblemError
 from api.schemas import (
     AnalysisRequest,
@@ -42,17 +45,17 @@ from api.schemas import (
     SessionRequest,
 )
 from model.errors import UserInputError
-from model.params import load_model, preset_names
+from model.params import load_model, parse_model, preset_names
 from rig.catalog import DEFAULT_PAGE, MAX_PAGE
 from rig.config import RigConfig
 from rig.core import access, actions
 from rig.core.access import AuditEntry, KeyInfo
-from rig.core.documents import ExperimentInfo, JobDocument, JobKind, JobStatus, RunDocument
+from rig.core.documents import ExperimentInfo, JobDocument, JobKind, JobStatus, ModelSummary, RunDocument
 from rig.core.events import Event, EventKind
 from rig.core.worker import AnalysisWorker, Job, RigWorker, UnknownJobError
 from rig.runfile import write_columns
 from rig.status import RunStatus
-from rig.store import ARTIFACTS_DIR, EXPORT_FORMATS, RunStore
+from rig.store import ARTIFACTS_DIR, EXPORT_FORMATS, MODEL_NAME_PATTERN, RunStore
 
 API = "/api/v1"
 STATIC_DIR = Path(__file__).parent / "static"
@@ -237,18 +240,85 @@ def experiments(who: Viewer) -> list[ExperimentInfo]:
     return actions.list_experiments()
 
 
-@router.get("/models", tags=["fits"], summary="the model presets a fit can start from")
-def models(who: Viewer) -> list[dict[str, Any]]:
-    return [m.as_json() for m in actions.list_models()]
+@router.get("/models", tags=["fits"], summary="the models a run or a fit can name: presets and uploaded")
+def models(request: Request, who: Viewer) -> list[dict[str, Any]]:
+    store = _store(request)
+    kept = []
+    for name in store.model_names():
+        if name in preset_names():
+            continue
+        model = load_model(_kept_model(store, name))
+        kept.append(ModelSummary(name=name, effects=list(model.effects), description=model.description))
+    return [m.as_json() for m in [*actions.list_models(), *kept]]
 
 
-@router.get("/models/{name}", tags=["fits"], summary="one preset as a model file (`hdrig model show --json`)")
+@router.get("/models/{name}", tags=["fits"], summary="one model as a model file (`hdrig model show --json`)")
 def model(
-    name: Annotated[str, PathParam(description="a preset name", max_length=200)], who: Viewer
+    name: Annotated[str, PathParam(description="a preset's or an uploaded model's name", max_length=200)],
+    request: Request,
+    who: Viewer,
 ) -> dict[str, Any]:
-    if name not in preset_names():  # presets only: a path would read files of the server
-        raise ProblemError(404, f"unknown model preset {name!r} (presets: {', '.join(preset_names())})")
-    return actions.show_model(name)
+    try:
+        ref = model_ref(_store(request), name, "name")
+    except ProblemError:  # names only: a path would read files of the server
+        raise ProblemError(404, f"unknown model {name[:80]!r} (GET /api/v1/models lists them)") from None
+    return actions.show_model(ref)
+
+
+class ModelUpload(BaseModel):
+    """A model file's content, kept in the store under `name` for runs and fits to name."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(
+        pattern=MODEL_NAME_PATTERN.pattern,
+        max_length=64,
+        description="1-64 letters, digits, '_' or '-': what runs (`params.model`) and fits (`model`) name",
+    )
+    model: dict[str, Any] = Field(description="the model file's content (as `GET /api/v1/models/{name}`)")
+
+
+@router.post(
+    "/models",
+    status_code=201,
+    tags=["fits"],
+    summary="upload a model (kept by name; 409 when the name is taken)",
+)
+def upload_model(body: ModelUpload, request: Request, response: Response, who: Operator) -> dict[str, Any]:
+    store = _store(request)
+    if body.name in preset_names() or store.model_file(body.name) is not None:
+        raise ProblemError(409, f"model name {body.name!r} is taken (GET /api/v1/models lists them)")
+    try:
+        parsed = parse_model(body.model, "body.model")
+    except UserInputError as exc:
+        message = str(exc)[:500]
+        raise ProblemError(422, message, [FieldError(field="body.model", message=message)]) from None
+    try:
+        store.keep_model(body.name, yaml.safe_dump(parsed.to_dict(), sort_keys=False))
+    except UserInputError as exc:  # taken meanwhile by another upload
+        raise ProblemError(409, str(exc)) from None
+    _audit(request, who, "model.upload", body.name)
+    response.headers["Location"] = f"{API}/models/{body.name}"
+    return parsed.to_dict()
+
+
+def _kept_model(store: RunStore, name: str) -> str:
+    path = store.model_file(name)
+    assert path is not None, name
+    return str(path)
+
+
+def model_ref(store: RunStore, name: str, field: str) -> str:
+    """What the core loads for a model a client named: a preset's name, or the file the store keeps for
+    an uploaded one. Anything else (a path above all) is a 422 naming the field; no file is looked at."""
+    if name in preset_names():
+        return name
+    if store.model_file(name) is not None:
+        return _kept_model(store, name)
+    message = (
+        f"{field}: unknown model {name[:80]!r}: name a preset ({', '.join(preset_names())}) or a model"
+        " uploaded with POST /api/v1/models (files on the server are not named over HTTP)"
+    )
+    raise ProblemError(422, message, [FieldError(field=field, message=message)])
 
 
 @router.post(
@@ -261,11 +331,14 @@ def model(
 def start_run(
     body: RunRequest, request: Request, response: Response, who: Operator
 ) -> RunDocument | JobDocument:
+    params = body.params
+    if isinstance(params.get("model"), str):  # a model by name only (compensation's `params.model`)
+        params = {**params, "model": model_ref(_store(request), params["model"], "body.params.model")}
     worker = _worker(request)
     try:  # the whole plan, built against this rig, before anything moves
         plan = actions.plan_run(
             body.experiment,
-            body.params,
+            params,
             keep_going=body.keep_going,
             unit=body.unit,
             tags=body.tags,
@@ -577,16 +650,12 @@ def _start_analysis(
     request: Request, response: Response, who: Principal, kind: JobKind, body: AnalysisRequest
 ) -> JobDocument:
     store = _store(request)
-    try:
-        load_model(body.model)
-    except UserInputError as exc:
-        message = f"model: {exc}"
-        raise ProblemError(422, message, [FieldError(field="body.model", message=message)]) from None
+    model = model_ref(store, body.model, "body.model")  # a name: presets and uploaded models only
     for ref in body.data:
         if ref != "latest":
             store.get(ref)  # 404 naming the unknown run; files on the server are not the service's to read
     action = actions.fit if kind == JobKind.FIT else actions.find_gaps
-    data, model = list(body.data), body.model
+    data = list(body.data)
 
     def work(progress: Any, job_id: str) -> Any:
         report = _analysis_folder(request, job_id) / REPORT_DIR
@@ -757,6 +826,8 @@ def create_app(rig_config: RigConfig, store: RunStore) -> FastAPI:
     app.add_api_route("/", _page, include_in_schema=False, response_model=None)
     app.mount("/static", StaticFiles(directory=STATIC_DIR, check_dir=False), name="static")
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    # Outermost: every JSON answer, errors included, leaves without the server's paths.
+    app.add_middleware(HideServerPaths, scrubber=PathScrubber(store.home, store.models_dir))
     return app
 
 

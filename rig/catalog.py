@@ -227,6 +227,20 @@ class Catalog:
         finally:
             conn.close()
 
+    def close(self) -> None:
+        """Close this catalog's connections (and its files), e.g. before its folder is deleted. Every
+        `Catalog` of the same URL in this process shares them: close only a catalog nothing else uses."""
+        key = self.url.render_as_string(hide_password=False)
+        with _engines_lock:
+            engine = _engines.pop(key, None)
+            _migrated.discard(key)
+        if engine is not None:
+            engine.dispose()
+        if self.is_sqlite and self.url.database not in (None, "", ":memory:"):
+            identity = _identity(str(self.url.database))
+            if identity is not None:
+                _own_files.pop(identity, None)
+
     def write(self) -> contextlib.AbstractContextManager[Connection]:
         """A transaction that writes: committed at the end of the block, rolled back on an exception."""
         return self._transaction(write=True)

@@ -114,6 +114,8 @@ def new_run_id(experiment: str, moment: datetime | None = None) -> str:
     return f"{(moment or datetime.now(UTC)):%Y%m%d-%H%M%S}-{slug}-{secrets.token_hex(2)}"
 
 
+MODELS_DIR = "models"  # models uploaded to the service (`POST /api/v1/models`), one `<name>.yaml` each
+MODEL_NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")  # a file name: no '/', no '.'
 TAG_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._:=@/+-]{0,99}")
 
 
@@ -350,6 +352,57 @@ class RunStore:
         )
         """The SQLite file of the catalog; None for a catalog on a database server (see `catalog.where`)."""
         self.data = RunData(data if data is not None else default_data_url(self.home))
+
+    # ---- models kept by name (the service's clients name models, never paths) --------------------
+
+    @property
+    def models_dir(self) -> Path:
+        return self.home / MODELS_DIR
+
+    def model_names(self) -> list[str]:
+        """The models kept in the store, by name."""
+        folder = self.models_dir
+        return sorted(p.stem for p in folder.glob("*.yaml") if MODEL_NAME_PATTERN.fullmatch(p.stem))
+
+    def model_file(self, name: str) -> Path | None:
+        """The file of the model kept as `name`; None when there is none (a name is never a path)."""
+        if not MODEL_NAME_PATTERN.fullmatch(name):
+            return None
+        path = self.models_dir / f"{name}.yaml"
+        return path if path.is_file() else None
+
+    def keep_model(self, name: str, text: str) -> Path:
+        """Keep a model file's text (already validated by the caller) as `name`: written whole (a
+        temporary file renamed), readable by this user only; a name already kept is refused."""
+        if not MODEL_NAME_PATTERN.fullmatch(name):
+            raise UserInputError(
+                f"model name {name[:80]!r}: 1-64 letters, digits, '_' or '-', starting with a letter or digit"
+            )
+        folder = self.models_dir
+        folder.mkdir(mode=0o700, exist_ok=True)
+        path = folder / f"{name}.yaml"
+        temporary = folder / f".{name}.{secrets.token_hex(4)}.tmp"
+        fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as out:
+            out.write(text)
+        try:
+            os.link(temporary, path)  # fails if the name is taken, so two uploads cannot both win
+        except FileExistsError:
+            raise UserInputError(f"model name {name!r} is taken") from None
+        finally:
+            temporary.unlink()
+        return path
+
+    def close(self) -> None:
+        """Close the catalog's connections and files: a store made for a while (the validation's
+        temporary one) is closed before its folder goes, or each leaves its catalog's descriptors open."""
+        self.catalog.close()
+
+    def __enter__(self) -> RunStore:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
 
     # ---- recording ------------------------------------------------------------------------------
 

@@ -43,6 +43,7 @@ ROLE_OF_ROUTE: dict[tuple[str, str], str] = {
     ("GET", f"{API}/experiments"): "viewer",
     ("GET", f"{API}/models"): "viewer",
     ("GET", f"{API}/models/{{name}}"): "viewer",
+    ("POST", f"{API}/models"): "operator",
     ("POST", f"{API}/runs"): "operator",
     ("GET", f"{API}/runs"): "viewer",
     ("GET", f"{API}/runs/{{run_id}}"): "viewer",

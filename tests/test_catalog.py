@@ -83,7 +83,8 @@ def test_a_catalog_from_before_migrations_is_upgraded_without_loss(tmp_path: Pat
     ]
     assert [c["index"] for c in store.checkpoints(unit="HD25-0007")] == [0]
     assert [k.name for k in access.list_keys(store)] == ["lab"]
-    assert [e.action for e in access.audit_log(store)] == ["start", "abort", "stop"]  # the rows' order kept
+    # the rows' order kept (the key made first is in the log too)
+    assert [e.action for e in access.audit_log(store)] == ["key.create", "start", "abort", "stop"]
     with sqlite3.connect(tmp_path / "home" / "catalog.sqlite") as db:
         assert db.execute("SELECT version_num FROM alembic_version").fetchall() == [(head_revision(),)]
         assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
@@ -135,7 +136,7 @@ def test_the_store_works_the_same_on_postgresql(tmp_path: Path, pg_url: str) -> 
     assert access.authenticate(store, token) == ("alice", access.Role.OPERATOR)
     for action in ("start", "abort", "stop"):
         access.audit(store, "alice", "operator", action)
-    assert [e.action for e in access.audit_log(store)] == ["start", "abort", "stop"]
+    assert [e.action for e in access.audit_log(store)] == ["key.create", "start", "abort", "stop"]
     with sa.create_engine(pg_url.replace("postgresql://", "postgresql+psycopg://")).connect() as db:
         assert db.execute(sa.text("SELECT version_num FROM alembic_version")).scalar() == head_revision()
 
@@ -191,4 +192,5 @@ def test_four_writer_processes_at_once_lose_and_double_nothing(
         assert sorted(r["metrics"]["k"] for r in mine) == list(range(runs_each))
         assert {r["rig"] for r in mine} == {f"rig{n}"}
     assert sorted(k.name for k in access.list_keys(store)) == ["rig0", "rig1", "rig2", "rig3"]
-    assert len(access.audit_log(store)) == 4 * runs_each
+    log = access.audit_log(store)  # each writer's key made (audited with it), then its runs' lines
+    assert len(log) == 4 + 4 * runs_each and sum(e.action == "key.create" for e in log) == 4

@@ -127,8 +127,11 @@ def validate(runs: list[Run], model: HarmonicDriveModel, out_dir: Path | None = 
     missing = [e for e in VALIDATION_EXPERIMENTS if e not in chosen]
     if missing:
         report.notes.append(f"no measured run of {', '.join(missing)}: those rows are left out")
-    with tempfile.TemporaryDirectory(prefix="hdrig-validation-") as home:
-        store = RunStore(home)
+    # The store is closed before its folder is removed: its catalog's files stay open otherwise.
+    with (
+        tempfile.TemporaryDirectory(prefix="hdrig-validation-") as home,
+        RunStore(home, catalog=f"sqlite:///{home}/catalog.sqlite", data=home) as store,
+    ):
         for name, measured in chosen.items():
             simulated, ctx = _replay_experiment(measured, model, store)
             mine, theirs = _analysis(simulated, ctx), _analysis(measured, ctx)
