@@ -24,6 +24,7 @@ import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -48,12 +49,17 @@ CHROMIUM_ARGS = [
 SERVICE_START_S = 60.0  # a cold start imports numpy, numba's kernels, matplotlib...
 FIRST_POINTS_S = 15.0  # the worker opens the rig and the first 0.25 s block is published
 STOP_S = 10.0  # quick stop: the motor coasts to rest and the run is sealed
+RECORD_S = 120.0  # a CLI sweep on the virtual-time rig: a cold start and ~5 s of simulation
+ANALYSIS_S = 120.0  # a fit of one sweep (~16 s here) and a gap analysis (~22 s), one after the other
+WIDTHS = (360, 1280, 1920)  # a phone, a lab PC, a wide lab monitor
+SHOTS = ROOT / "out" / "browser"  # screenshots kept as the test's artifacts (/out/ is git-ignored)
+AXE = ROOT / "tests" / "vendor" / "axe.min.js"  # axe-core from npm (MPL-2.0, tests/vendor/axe-core.LICENSE)
 
 
 def _sweep_length_s() -> float:
     """The default speed sweep's length in wall-clock seconds on a realtime rig: every speed both ways,
     settle then hold (the travel limit can only shorten holds)."""
-    p = EXPERIMENTS["speed-sweep"].Params()
+    p: Any = EXPERIMENTS["speed-sweep"].Params()  # the sweep's own fields, not the base class's
     return 2 * len(p.speeds_rad_s) * (p.settle_s + p.hold_s)
 
 
@@ -66,6 +72,7 @@ class Service:
     key: str
     process: subprocess.Popen[bytes]
     log: Path
+    sweeps: list[str]  # finished speed sweeps in the store before the service started
 
     def get(self, path: str) -> object:
         request = urllib.request.Request(self.url + path, headers={"Authorization": f"Bearer {self.key}"})
@@ -94,9 +101,27 @@ def _wait_healthy(url: str, process: subprocess.Popen[bytes], log: Path) -> None
     pytest.fail(f"hdrig serve not healthy within {SERVICE_START_S:.0f} s:\n{log.read_text()}")
 
 
-@pytest.fixture
-def service(tmp_path: Path) -> Iterator[Service]:
-    """`hdrig serve` on a realtime sim rig, a fresh store, and an operator key made for the test."""
+def _record(env: dict[str, str], *settings: str) -> subprocess.Popen[str]:
+    """A run recorded by the CLI on the virtual-time sim rig (seconds, not a bench's minutes)."""
+    args = [str(HDRIG), "run", "speed-sweep", "--rig", "sim", "--json", "-q"]
+    for setting in settings:
+        args += ["--set", setting]
+    return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _recorded(process: subprocess.Popen[str]) -> str:
+    out, err = process.communicate(timeout=RECORD_S)
+    assert process.returncode == 0, err
+    document = json.loads(out)
+    run = document[0] if isinstance(document, list) else document
+    return str(run["id"])
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
+    """`hdrig serve` on a realtime sim rig, a store holding two finished sweeps (recorded by the CLI
+    on the virtual-time rig), and an operator key made for the test."""
+    tmp_path = tmp_path_factory.mktemp("browser")
     rig_file = tmp_path / "sim-realtime.yaml"
     rig = yaml.safe_load((ROOT / "configs" / "rigs" / "sim.yaml").read_text())
     rig["pace"] = "realtime"
@@ -113,6 +138,8 @@ def service(tmp_path: Path) -> Iterator[Service]:
     assert made.returncode == 0, made.stderr
     key = made.stdout.strip()
     assert key, "hdrig keys create printed no key"
+    recording = [_record(env), _record(env, "speeds_rad_s=[1,10,100]", "hold_s=0.3")]  # side by side
+    sweeps = [_recorded(process) for process in recording]
 
     port = _free_port()
     log = tmp_path / "serve.log"
@@ -126,7 +153,7 @@ def service(tmp_path: Path) -> Iterator[Service]:
     url = f"http://127.0.0.1:{port}"
     try:
         _wait_healthy(url, process, log)
-        yield Service(url, key, process, log)
+        yield Service(url, key, process, log, sweeps)
     finally:
         process.terminate()
         try:
@@ -136,7 +163,7 @@ def service(tmp_path: Path) -> Iterator[Service]:
             process.wait(timeout=5)
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def browser() -> Iterator[object]:
     """Debian's Chromium driven by Playwright; missing either is a failure (CI must provide both)."""
     if not (Path(CHROMIUM).is_file() and os.access(CHROMIUM, os.X_OK)) and not shutil.which(CHROMIUM):
@@ -153,11 +180,81 @@ def browser() -> Iterator[object]:
             chromium.close()
 
 
+def _login(page: Any, service: Service) -> None:
+    page.goto(service.url + "/")
+    page.fill("#login-key", service.key)
+    page.click("#login-submit")
+    page.locator("#rig-state").wait_for(state="visible", timeout=10_000)
+
+
+def _settled(page: Any) -> None:
+    """Two animation frames: the charts' ResizeObservers have run after a change of the window's size."""
+    page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+
+
+def _no_horizontal_scroll(page: Any) -> None:
+    _settled(page)
+    wide = page.evaluate("() => [document.documentElement.scrollWidth, window.innerWidth]")
+    if wide[0] > wide[1]:
+        culprits = page.evaluate(
+            """() => [...document.querySelectorAll('body *')]
+                 .filter(e => e.getBoundingClientRect().right > innerWidth + 0.5 && e.offsetParent !== null &&
+                         !e.closest('.table-wrap'))
+                 .slice(-5).map(e => e.tagName + '#' + e.id + '.' + e.className + ' ' +
+                                     Math.round(e.getBoundingClientRect().right))"""
+        )
+        pytest.fail(f"the page scrolls sideways: {wide[0]} px of content in {wide[1]} px: {culprits}")
+
+
+def _stop_on_screen_and_uncovered(page: Any) -> None:
+    """STOP inside the window wherever the page is scrolled, nothing drawn over it, and (at the top) the
+    bar holding it covering no content."""
+    for where in ("0", "document.documentElement.scrollHeight / 2", "document.documentElement.scrollHeight"):
+        page.evaluate(f"() => window.scrollTo(0, {where})")
+        box = page.evaluate(
+            """() => { const r = document.querySelector('#stop').getBoundingClientRect();
+                 const hit = document.elementFromPoint(r.x + r.width / 2, r.y + r.height / 2);
+                 return {top: r.top, bottom: r.bottom, left: r.left, right: r.right, w: innerWidth,
+                         h: innerHeight, onTop: hit === document.querySelector('#stop')}; }"""
+        )
+        assert box["top"] >= 0 and box["bottom"] <= box["h"], f"STOP off screen at scroll {where}: {box}"
+        assert box["left"] >= 0 and box["right"] <= box["w"], f"STOP off screen sideways: {box}"
+        assert box["onTop"], f"something covers STOP at scroll {where}"
+    page.evaluate("() => window.scrollTo(0, 0)")
+    overlaps = page.evaluate(
+        """() => { const bar = document.querySelector('#bar').getBoundingClientRect();
+             return [...document.querySelectorAll('main section, #message')]
+               .filter(s => s.offsetParent !== null)
+               .map(s => s.getBoundingClientRect())
+               .filter(r => r.top < bar.bottom - 0.5 && r.bottom > bar.top && r.height > 0).length; }"""
+    )
+    assert overlaps == 0, f"the bar with STOP covers {overlaps} section(s) of the page"
+
+
+def _axe(page: Any) -> None:
+    """axe-core in the page (evaluated, so the page's CSP is not loosened for it): no serious or critical
+    violation."""
+    if not page.evaluate("() => typeof window.axe !== 'undefined'"):
+        page.evaluate(AXE.read_text())
+    violations = page.evaluate(
+        "async () => (await axe.run(document, {resultTypes: ['violations']})).violations"
+        ".map(v => ({id: v.id, impact: v.impact, nodes: v.nodes.slice(0, 3).map(n => n.target.join(' '))}))"
+    )
+    bad = [v for v in violations if v["impact"] in ("serious", "critical")]
+    assert bad == [], f"axe-core: {bad}"
+
+
+def _shot(page: Any, name: str, full_page: bool = False) -> None:
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    width = page.viewport_size["width"]
+    page.screenshot(path=str(SHOTS / f"{name}-{width}.png"), full_page=full_page)
+
+
 def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, service: Service) -> None:
     from playwright.sync_api import Browser, Page, expect
 
     assert isinstance(browser, Browser)
-    page: Page = browser.new_page(viewport={"width": 1280, "height": 1000})
+    page: Page = browser.new_page(viewport={"width": 1280, "height": 900})
     page_errors: list[str] = []
     page.on("pageerror", lambda error: page_errors.append(str(error)))
 
@@ -175,6 +272,10 @@ def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, s
     # The form is built from the experiment's params_schema, defaults filled in, units shown.
     page.select_option("#experiment", "speed-sweep")
     expect(page.locator("#param-hold_s")).to_have_value("0.7")
+    # Labels in words from the schema's descriptions, not the machine-made titles ("Hold S").
+    described = EXPERIMENTS["speed-sweep"].Params.model_json_schema()["properties"]["hold_s"]["description"]
+    words = re.sub(r"\s*\[[^\]]*\]\s*$", "", described)  # "... direction [s]" → "... direction"
+    expect(page.locator("[data-field=hold_s] .label-text")).to_have_text(words[0].upper() + words[1:])
     expect(page.locator("#param-speeds_rad_s")).to_have_value(re.compile(r"^0\.5, 1, 2, .*200$"))
     expect(page.locator("[data-field=hold_s] .unit")).to_have_text("s")
 
@@ -199,6 +300,24 @@ def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, s
         timeout=RUN_S / 4 * 1000,
     )
     assert int(page.locator("#live-points").inner_text()) > 0
+    # The notice follows the run: it says running, not the "queued" it said before.
+    expect(page.locator("#message")).to_contain_text("running", timeout=5_000)
+    expect(page.locator("#rig-drive")).to_have_text("drive enabled")
+
+    # While it runs: every width fits, STOP in reach, axe clean; at 1280x900 the plots are above the fold.
+    for width in WIDTHS:
+        page.set_viewport_size({"width": width, "height": 900 if width == 1280 else 800})
+        _no_horizontal_scroll(page)
+        _stop_on_screen_and_uncovered(page)
+        if width == 1280:
+            for plot in ("#plot-omega", "#plot-current", "#plot-position", "#plot-error"):
+                box = page.locator(plot).bounding_box()
+                assert box is not None and box["height"] > 100, plot
+                assert box["y"] + box["height"] <= 900, f"{plot} below the fold at 1280x900: {box}"
+                assert page.locator(f"{plot} canvas").count() >= 1, f"{plot}: no uPlot canvas"
+        _axe(page)
+        _shot(page, "running")
+    page.set_viewport_size({"width": 1280, "height": 900})
     expect(page.locator("#progress-text")).to_contain_text("speed-sweep")
     run_id = page.locator("#live-run").inner_text()
     assert run_id
@@ -211,6 +330,15 @@ def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, s
     expect(page.locator("#live-status")).to_have_text("aborted", timeout=STOP_S * 1000)
     expect(page.locator("#alarms")).to_be_visible()
     expect(page.locator("#rig-state")).to_have_text("idle", timeout=STOP_S * 1000)
+    # The health says the run aborted (amber) until a person resets, though the rig is idle again.
+    expect(page.locator("#rig-health")).to_have_attribute("data-level", "warn", timeout=STOP_S * 1000)
+    expect(page.locator("#rig-health")).to_contain_text("aborted")
+    expect(page.locator("#message")).to_contain_text("aborted")
+    expect(page.locator("#message")).not_to_contain_text("running")
+    _shot(page, "aborted")
+    page.click("#reset")
+    expect(page.locator("#rig-health")).to_have_attribute("data-level", "ok", timeout=5_000)
+    expect(page.locator("#reset")).to_be_hidden()
     row = page.locator(f"#runs tbody tr[data-id='{run_id}']")
     expect(row).to_have_attribute("data-status", "aborted", timeout=STOP_S * 1000)
     expect(row.locator("a[data-format=csv]")).to_be_visible()
@@ -228,3 +356,120 @@ def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, s
     expect(page.locator("#live-status")).to_have_text("aborted", timeout=STOP_S * 1000)
     expect(page.locator("#alarms")).to_contain_text("quick_stop")
     assert page_errors == []
+
+
+def test_a_failed_stop_is_shown_at_stop_and_retried(browser: object, service: Service) -> None:
+    """The service unreachable for the STOP request: the failure shows beside STOP, and it is sent again."""
+    from playwright.sync_api import Browser, Route, expect
+
+    assert isinstance(browser, Browser)
+    page = browser.new_page(viewport={"width": 360, "height": 740})
+    _login(page, service)
+    attempts: list[str] = []
+
+    def refuse(route: Route) -> None:
+        attempts.append(route.request.method)
+        route.abort("connectionrefused")
+
+    page.route("**/api/v1/rig/stop", refuse)
+    page.click("#stop")
+    problem = page.locator("#stop-problem")
+    expect(problem).to_be_visible(timeout=5_000)
+    expect(problem).to_contain_text("STOP FAILED")
+    # Beside STOP, in the bar: in view without scrolling, at a phone's width.
+    box = problem.bounding_box()
+    assert box is not None and box["y"] + box["height"] <= 740
+    retried = "() => document.querySelector('#stop-problem').textContent.includes('2/')"
+    page.wait_for_function(retried, timeout=5_000)  # the first retry comes after STOP_RETRY_MS = 1 s
+    assert len(attempts) >= 2, attempts
+    _shot(page, "stop-failed")
+    page.unroute("**/api/v1/rig/stop")
+    page.click("#stop")
+    expect(problem).to_be_hidden(timeout=5_000)
+    page.close()
+
+
+def test_results_render_in_the_page_at_every_width(browser: object, service: Service) -> None:
+    """A sweep's friction plot and tables, two runs overlaid, a fit's parameters with σ and a gap
+    analysis' steps, all in the page at 360, 1280 and 1920 px."""
+    from playwright.sync_api import Browser, expect
+
+    assert isinstance(browser, Browser)
+    sweep, short = service.sweeps
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page_errors: list[str] = []
+    page.on("pageerror", lambda error: page_errors.append(str(error)))
+    _login(page, service)
+
+    # A fit and a gap analysis of the short sweep, started from the page; they run while we look.
+    page.fill("#analysis-data", short)
+    page.select_option("#analysis-kind", "fits")
+    page.click("#analysis-form button[type=submit]")
+    expect(page.locator("#jobs tbody tr[data-kind=fit]")).to_have_count(1, timeout=10_000)
+    page.select_option("#analysis-kind", "gaps")
+    page.click("#analysis-form button[type=submit]")
+    expect(page.locator("#jobs tbody tr[data-kind=gaps]")).to_have_count(1, timeout=10_000)
+
+    # The sweep's results: friction against speed with its law (a uPlot chart), its table, its PNG.
+    page.click(f"button[data-results='{sweep}']")
+    figure = page.locator("figure[data-artifact='friction_vs_velocity.csv']")
+    expect(figure.locator(".uplot canvas").first).to_be_visible(timeout=10_000)
+    expect(figure.locator(".u-title")).to_have_text("friction against speed")
+    expect(figure.locator(".table-wrap table tbody tr")).to_have_count(18)  # 9 speeds, both ways
+    expect(figure.locator(".table-wrap th").first).to_have_text("omega_set [rad/s]")
+    expect(page.locator("#results-body figure img").first).to_be_visible()
+    assert page.locator("#results-body figure img").first.evaluate("i => i.naturalWidth") > 0
+
+    # Two runs overlaid on one time axis.
+    page.select_option("#overlay-run", short)
+    page.click("#overlay-form button[type=submit]")
+    expect(page.locator("#overlay .uplot canvas").first).to_be_visible(timeout=10_000)
+    expect(page.locator("#overlay .u-legend")).to_contain_text(short)
+    expect(page.locator("#overlay .u-legend")).to_contain_text(sweep)
+
+    for width in WIDTHS:
+        page.set_viewport_size({"width": width, "height": 900})
+        page.locator("#run-results").scroll_into_view_if_needed()
+        _no_horizontal_scroll(page)
+        _stop_on_screen_and_uncovered(page)
+        page.locator("figure[data-artifact='friction_vs_velocity.csv']").scroll_into_view_if_needed()
+        chart = figure.locator(".uplot").bounding_box()
+        assert chart is not None and chart["x"] >= 0 and chart["x"] + chart["width"] <= width, chart
+        _shot(page, "run-results")
+
+    # The fit: parameters with σ (numbers where determined), a model named after its run and fit.
+    fit_row = page.locator("#jobs tbody tr[data-kind=fit]")
+    expect(fit_row).to_have_attribute("data-status", "complete", timeout=ANALYSIS_S * 1000)
+    fit_id = fit_row.get_attribute("data-id")
+    fit_row.locator("button").click()
+    table = page.locator("[data-testid=fit-parameters]")
+    expect(table).to_be_visible(timeout=10_000)
+    sigma = table.locator("tr[data-param=s3] td").nth(1).inner_text()
+    assert float(sigma) > 0, sigma
+    expect(table.locator("tr[data-param=K_s] td").nth(1)).to_have_text("not determined")
+    download = page.locator("[data-testid=model-download]")
+    if download.count():
+        name = download.get_attribute("download") or ""
+        assert short in name and str(fit_id) in name and "seed" not in name, name
+    report = page.locator("#job-results [data-testid=report]")
+    expect(report.locator("table").first).to_be_visible(timeout=10_000)  # rendered Markdown, not text
+    expect(report).not_to_contain_text("|---")
+
+    # The gap analysis: its steps and verdict as a table and text.
+    gaps_row = page.locator("#jobs tbody tr[data-kind=gaps]")
+    expect(gaps_row).to_have_attribute("data-status", "complete", timeout=ANALYSIS_S * 1000)
+    gaps_row.locator("button").click()
+    steps = page.locator("[data-testid=gaps-steps]")
+    expect(steps.locator("tbody tr").first).to_have_text(re.compile(r"start"), timeout=10_000)
+    expect(page.locator("[data-testid=gaps-verdict]")).to_contain_text("verdict")
+
+    for width in WIDTHS:
+        page.set_viewport_size({"width": width, "height": 900})
+        _no_horizontal_scroll(page)
+        _stop_on_screen_and_uncovered(page)
+        _axe(page)
+        page.locator("#job-results").scroll_into_view_if_needed()
+        _shot(page, "analyses")
+        _shot(page, "page", full_page=True)
+    assert page_errors == []
+    page.close()

@@ -2,7 +2,9 @@
 // Plain ES modules, no build step and no network beyond the service itself (labs have no internet).
 
 import { ProblemError, errorLines, request, whenUnauthorized } from "./api.js";
-import { RollingWindow, drawPlot } from "./plot.js";
+import { RollingWindow, frameThrottled, makeChart } from "./charts.js";
+import { el, fmt } from "./dom.js";
+import { overlayRuns, renderJobResults, showRunResults } from "./results.js";
 
 const RIG_POLL_MS = 1000; // the rig's state: often, it is what an operator watches
 const LISTS_POLL_MS = 5000; // runs and jobs: they change when runs end, the stream tells us sooner
@@ -12,11 +14,14 @@ const FINAL_JOB_STATUSES = new Set(["complete", "aborted", "failed"]);
 const RECENT_RUNS = 25;
 
 const PLOTS = [
-  { canvas: "plot-omega", column: "omega_m", title: "speed ω_m", unit: "rad/s", color: "#1565c0" },
-  { canvas: "plot-current", column: "i_a", title: "current i_a", unit: "A", color: "#c62828" },
-  { canvas: "plot-position", column: "theta_m", title: "position θ_m", unit: "rad", color: "#2e7d32" },
-  { canvas: "plot-error", column: "error", title: "tracking error (set-point − measured)", unit: "–", color: "#6a1b9a" },
+  { id: "plot-omega", column: "omega_m", title: "speed ω_m", unit: "rad/s", color: "#1565c0" },
+  { id: "plot-current", column: "i_a", title: "current i_a", unit: "A", color: "#c62828" },
+  { id: "plot-position", column: "theta_m", title: "position θ_m", unit: "rad", color: "#2e7d32" },
+  { id: "plot-error", column: "error", title: "tracking error (set-point − measured)", unit: "–", color: "#6a1b9a" },
 ];
+const ACKED_ABORT = "hdrig-acknowledged-abort"; // localStorage: the last abort a person has reset
+const STOP_RETRIES = 5; // a failed STOP is sent again, once a second, this many times
+const STOP_RETRY_MS = 1000;
 
 const $ = (id) => document.getElementById(id);
 
@@ -25,29 +30,16 @@ const page = {
   experiments: [],
   timers: [],
   live: null, // {runId, source, window, lastEventId}
+  charts: new Map(), // plot id → uPlot
+  rig: null, // the last GET /rig answer
 };
 
 // ---- small DOM helpers --------------------------------------------------------------------------
 
-/** Build an element; children are nodes or text (always text: nothing from the service is parsed as HTML). */
-function el(tag, attrs = {}, ...children) {
-  const node = document.createElement(tag);
-  for (const [key, value] of Object.entries(attrs)) {
-    if (value === undefined || value === null || value === false) continue;
-    if (key === "dataset") Object.assign(node.dataset, value);
-    else if (key in node && typeof value !== "string") node[key] = value;
-    else node.setAttribute(key, value === true ? "" : value);
-  }
-  for (const child of children.flat()) {
-    if (child === undefined || child === null) continue;
-    node.append(child instanceof Node ? child : String(child));
-  }
-  return node;
-}
-
-function showMessage(text, seconds = 8) {
+function showMessage(text, seconds = 8, tone = "") {
   const box = $("message");
   box.textContent = text;
+  box.className = tone;
   box.hidden = false;
   clearTimeout(showMessage.timer);
   if (seconds) showMessage.timer = setTimeout(() => (box.hidden = true), seconds * 1000);
@@ -66,13 +58,6 @@ function showProblem(box, error) {
   const lines = errorLines(problem).filter((line) => line !== problem.detail);
   if (lines.length) box.append(el("ul", {}, lines.map((line) => el("li", {}, line))));
   box.hidden = false;
-}
-
-function fmt(value) {
-  if (typeof value === "number") return Number.isInteger(value) ? String(value) : Number(value.toPrecision(4)).toString();
-  if (value === null || value === undefined) return "–";
-  if (typeof value === "object") return JSON.stringify(value);
-  return String(value);
 }
 
 /** "aborted" + "aborted: quick stop" → "aborted: quick stop", not the word twice. */
@@ -127,6 +112,7 @@ async function enterApp() {
   page.loggedIn = true;
   $("login").hidden = true;
   $("app").hidden = false;
+  if (!page.charts.size) makeLiveCharts(); // once the box is shown, so the plots take its width
   $("logout").hidden = false;
   await Promise.all([loadExperiments(), pollRig(), refreshRuns(), refreshJobs()]);
   startPolling();
@@ -170,6 +156,10 @@ async function pollRig() {
   const run = currentRun(rig);
   const runId = run && run.id;
   if (runId && (!page.live || page.live.runId !== runId)) followRun(runId);
+  // The notice follows the run's state even between its stream's events (queued → running).
+  if (run && page.live && page.live.runId === runId && $("message").textContent.startsWith(`Run ${runId} queued`) && run.status !== "queued") {
+    showMessage(`Run ${runId} ${run.status}.`, 0);
+  }
 }
 
 /** The service names it `current_run` (api/schemas.py RigStatus); `run` is the older name. */
@@ -178,6 +168,7 @@ function currentRun(rig) {
 }
 
 function renderRig(rig) {
+  page.rig = rig;
   $("rig-summary").hidden = false;
   $("rig-name").textContent = rig.name || "";
   const mode = rig.mode || (rig.backend === "sim" ? "sim" : "hardware");
@@ -185,7 +176,7 @@ function renderRig(rig) {
   badge.textContent = mode === "sim" ? "SIM" : "HARDWARE";
   badge.className = `badge ${mode === "sim" ? "sim" : "hardware"}`;
   renderState(rig.state);
-  renderHealth(rig.health || {});
+  renderHealth(rig.health || {}, rig.state);
   renderRigDetails(rig);
 }
 
@@ -196,15 +187,39 @@ function renderState(state) {
   node.className = `state ${state}`;
 }
 
-function renderHealth(health) {
+/** Green when healthy; amber after an abort until a person resets; red on a fault or a faulted rig. */
+function renderHealth(health, state) {
   const faults = health.faults || [];
-  const ok = faults.length === 0; // a disabled drive at rest is normal (a quick stop disables it)
-  const parts = [health.enabled ? "drive enabled" : "drive disabled"];
-  if (faults.length) parts.push(`faults: ${faults.map(fmt).join(", ")}`);
-  if (health.last_abort) parts.push(`last abort: ${fmt(health.last_abort)}`);
+  const drive = $("rig-drive");
+  drive.textContent = health.enabled ? "drive enabled" : "drive disabled";
+  drive.className = `chip ${health.enabled ? "drive-on" : "drive-off"}`;
+  const abort = health.last_abort && health.last_abort !== localStorage.getItem(ACKED_ABORT) ? health.last_abort : "";
+  let level = "ok";
+  let text = "healthy";
+  if (faults.length || state === "faulted") {
+    level = "bad";
+    text = faults.length ? `fault: ${faults.map(fmt).join(", ")}` : "faulted";
+  } else if (abort) {
+    level = "warn";
+    text = `last run ${prefixed("aborted", fmt(abort))}`;
+  }
   const node = $("rig-health");
-  node.textContent = parts.join(" · ");
-  node.className = ok ? "health-ok" : "health-bad";
+  node.textContent = text;
+  node.dataset.level = level;
+  node.className = `chip health-${level}`;
+  $("reset").hidden = level === "ok";
+}
+
+/** Reset: leave the faulted state (the service) and take note of the abort a person has seen (here). */
+async function resetRig() {
+  const health = (page.rig && page.rig.health) || {};
+  try {
+    const rig = await request("POST", "/rig/reset");
+    if (health.last_abort) localStorage.setItem(ACKED_ABORT, health.last_abort);
+    renderRig(rig);
+  } catch (error) {
+    showMessage(`Reset failed: ${error.message}`, 0, "final-bad");
+  }
 }
 
 function renderRigDetails(rig) {
@@ -220,18 +235,27 @@ function renderRigDetails(rig) {
   $("rig-details").replaceChildren(...rows.flatMap(([k, v]) => [el("dt", {}, k), el("dd", {}, v)]));
 }
 
-/** The big red button: ask the service to stop everything; never blocked by anything on the page. */
-async function stopRig() {
+/** The big red button: ask the service to stop everything. A failure is said beside the button and
+ * the stop is sent again, once a second, a few times; pressing again always sends at once. */
+async function stopRig(attempt = 0) {
+  clearTimeout(stopRig.retry);
+  const problem = $("stop-problem");
   try {
     const rig = await request("POST", "/rig/stop");
+    problem.hidden = true;
+    $("stop").classList.remove("failed");
     showMessage("Stop sent: the rig is quick-stopping.");
     if (rig && rig.state) renderRig(rig); // the answer is the rig's status right after the stop
   } catch (error) {
+    $("stop").classList.add("failed");
+    problem.hidden = false;
     if (error instanceof ProblemError && error.status === 401) {
-      showMessage("STOP NOT SENT: log in first (the service needs a key to move or stop the rig).", 0);
-    } else {
-      showMessage(`STOP FAILED: ${error.message}`, 0);
+      problem.textContent = "STOP NOT SENT: log in first (the service needs a key to move or stop the rig).";
+      return;
     }
+    const again = attempt < STOP_RETRIES;
+    problem.textContent = `STOP FAILED (${error.message})${again ? `: retrying (${attempt + 1}/${STOP_RETRIES})` : ": press STOP again"}`;
+    if (again) stopRig.retry = setTimeout(() => stopRig(attempt + 1), STOP_RETRY_MS);
   }
 }
 
@@ -300,11 +324,13 @@ function paramField(name, schema) {
     input.value = value === undefined || value === null ? "" : Array.isArray(value) ? value.join(", ") : String(value);
     if (type === "array") input.placeholder = "comma separated";
   }
-  const hint = [text, rangeText(schema)].filter(Boolean).join(" · ");
+  // The description says what it is in words ("time each pulse is on [s]"); the title is machine-made.
+  const words = text ? text.charAt(0).toUpperCase() + text.slice(1) : schema.title || name;
+  const hint = [name, rangeText(schema)].filter(Boolean).join(" · ");
   return el(
     "label",
     { dataset: { field: name } },
-    el("span", { title: name }, schema.title || name),
+    el("span", { class: "label-text" }, words),
     input,
     el("span", { class: "unit" }, unit),
     hint ? el("span", { class: "hint" }, hint) : null,
@@ -374,6 +400,7 @@ function followRun(runId) {
   // `begun`: this run's own first `run` event has arrived. A stream read from its start also carries the
   // rig-wide events logged before the run began (earlier stops, states): history, not this run's alarms.
   page.live = { runId, source, window, begun: false };
+  $("live-plots").hidden = false;
   $("live-run").textContent = runId;
   $("live-status").textContent = "";
   $("live-status").dataset.status = "";
@@ -405,6 +432,7 @@ function followRun(runId) {
 function closeLive() {
   if (page.live) page.live.source.close();
   page.live = null;
+  $("live-plots").hidden = true; // no run followed yet: nothing to plot, the form comes first
   $("abort").hidden = true;
 }
 
@@ -414,7 +442,11 @@ const ERROR_UNITS = { velocity: "rad/s", position: "rad" };
 function onSamples(data) {
   page.live.window.push(data);
   const errorPlot = PLOTS.find((p) => p.column === "error");
-  errorPlot.unit = ERROR_UNITS[String(data.mode).toLowerCase().replace(/^.*\./, "")] || "no set-point in this mode";
+  const unit = ERROR_UNITS[String(data.mode).toLowerCase().replace(/^.*\./, "")] || "no set-point in this mode";
+  if (unit !== errorPlot.unit) {
+    errorPlot.unit = unit;
+    makeLiveCharts(); // the title and axis carry the unit
+  }
   renderPoints();
   drawPlots();
 }
@@ -425,12 +457,41 @@ function renderPoints() {
   $("live-received").textContent = String(window ? window.received : 0);
 }
 
-function drawPlots() {
+/** One uPlot per live column, in boxes made here (the page has one container for them). */
+function makeLiveCharts() {
+  const holder = $("live-plots");
+  const boxes = PLOTS.map((plot) => {
+    let box = $(plot.id);
+    if (!box) {
+      box = el("div", { id: plot.id, class: "chart", dataset: { testid: plot.id } });
+      holder.append(box);
+    }
+    return box;
+  });
+  PLOTS.forEach((plot, i) => {
+    const old = page.charts.get(plot.id);
+    if (old) old.destroy();
+    const chart = makeChart(boxes[i], {
+      title: `${plot.title} [${plot.unit}]`,
+      xLabel: "t [s]",
+      yLabel: `${plot.column === "error" ? "error" : plot.column} [${plot.unit}]`,
+      series: [{ label: plot.title, color: plot.color }],
+    });
+    page.charts.set(plot.id, chart);
+  });
+  drawNow();
+}
+
+function drawNow() {
   const data = page.live ? page.live.window.data : { t: [] };
   for (const plot of PLOTS) {
-    drawPlot($(plot.canvas), data.t, data[plot.column] || [], plot);
+    const chart = page.charts.get(plot.id);
+    if (chart) chart.setData([data.t, data[plot.column] || data.t.map(() => null)]);
   }
 }
+
+// Many sample events a second, one redraw per frame at most.
+const drawPlots = frameThrottled(drawNow);
 
 function renderProgress({ fraction, phase, eta_s: eta }) {
   $("progress").value = fraction || 0;
@@ -452,13 +513,16 @@ function onRunDocument(run) {
   const status = run.status;
   $("live-status").textContent = status;
   $("live-status").dataset.status = status;
+  // The notice follows the run: "queued" gives way to "running", then to how it ended.
+  if (!FINAL_RUN_STATUSES.has(status)) showMessage(`Run ${run.id} ${status}.`, 0);
   if (FINAL_RUN_STATUSES.has(status)) {
     // The stream ends after the final document; closing it here keeps EventSource from reconnecting.
     page.live.source.close();
     $("abort").hidden = true;
     const fraction = status === "complete" ? 1 : $("progress").value;
     renderProgress({ fraction, phase: status, eta_s: null }); // no ETA once it has ended
-    if (run.reason) showMessage(`Run ${run.id} ${prefixed(status, run.reason)}`, 0);
+    const tone = status === "complete" ? "final-ok" : "final-bad";
+    showMessage(`Run ${run.id} ${run.reason ? prefixed(status, run.reason) : status}.`, status === "complete" ? 15 : 0, tone);
     refreshRuns().catch(() => {});
     refreshJobs().catch(() => {});
   }
@@ -480,6 +544,7 @@ async function refreshRuns() {
   // One page of the newest runs (and any queued), oldest first: the catalog itself may hold 100,000.
   const runs = await request("GET", `/runs?limit=${RECENT_RUNS}`);
   const recent = runs.slice(-RECENT_RUNS).reverse();
+  page.recentRuns = recent;
   const body = $("runs").tBodies[0];
   const rows = new Map([...body.rows].map((row) => [row.dataset.id, row]));
   const wanted = recent.map((run) => {
@@ -513,42 +578,13 @@ function metricsCell(metrics) {
   return el("span", { class: "metrics", title: all }, shown.join("; ") + (entries.length > 6 ? "; …" : ""));
 }
 
-/** The artifact's path under the run's artifacts folder (a run document lists absolute paths). */
-function artifactPath(path) {
-  const marker = "/artifacts/";
-  const at = path.lastIndexOf(marker);
-  return at >= 0 ? path.slice(at + marker.length) : path;
-}
-
-function artifactLink(runId, path) {
-  const relative = artifactPath(path);
-  const url = `/api/v1/runs/${encodeURIComponent(runId)}/artifacts/${relative.split("/").map(encodeURIComponent).join("/")}`;
-  const label = relative.split("/").pop();
-  return el("a", { href: url, target: "_blank", rel: "noopener", class: relative.endsWith(".png") ? "plot" : "table" }, label);
-}
-
-/** The catalog leaves artifacts out of the list: they are listed (GET .../artifacts) when the row is opened. */
+/** Results are shown in the page (tables, plots), below the runs table, when asked for. */
 function artifactsCell(run) {
-  if (run.artifacts && run.artifacts.length) return artifactList(run.id, run.artifacts);
   if (!FINAL_RUN_STATUSES.has(run.status)) return ""; // artifacts are written as a run ends
-  const details = el("details", {}, el("summary", {}, "files"));
-  details.addEventListener("toggle", async () => {
-    if (!details.open || details.dataset.loaded) return;
-    details.dataset.loaded = "1";
-    try {
-      const { files } = await request("GET", `/runs/${encodeURIComponent(run.id)}/artifacts`);
-      details.append(files.length ? artifactList(run.id, files) : "none");
-    } catch (error) {
-      details.append(`(${error.message})`);
-    }
-  });
-  return details;
-}
-
-function artifactList(runId, artifacts) {
-  // Plots first: they are what one opens most.
-  const sorted = [...artifacts].sort((a, b) => Number(b.endsWith(".png")) - Number(a.endsWith(".png")));
-  return el("span", { class: "artifacts" }, sorted.map((path) => artifactLink(runId, path)));
+  const button = el("button", { type: "button", dataset: { results: run.id } }, "Show");
+  button.setAttribute("aria-label", `show the results of run ${run.id}`);
+  button.addEventListener("click", () => showRunResults(run, page.recentRuns || []));
+  return button;
 }
 
 function downloadLinks(run) {
@@ -587,30 +623,27 @@ function jobRow(job) {
 function resultSummary(job) {
   const result = job.result;
   if (!result || typeof result !== "object") return "";
-  if (job.kind === "fit" && result.fit_error) {
-    const e = result.fit_error;
-    const params = Object.keys(result.parameters || {}).length;
-    return `${e.metric}: ${fmt(e.before)} → ${fmt(e.after)} (${params} parameters)`;
+  if (job.kind === "fit" && result.parameters) {
+    const params = Object.values(result.parameters);
+    const fitted = params.filter((p) => p.identifiable).length;
+    const e = result.fit_error || {};
+    const error = Number.isFinite(e.before) && Number.isFinite(e.after) ? `; fit error ${fmt(e.before)} → ${fmt(e.after)}` : "";
+    return `${fitted} of ${params.length} parameters determined${error}`;
   }
   if (job.kind === "gaps") {
     const effects = (result.steps || []).map((s) => s.effect).join(", ") || "none";
-    return `${result.metric}: ${fmt(result.initial_gap)} → ${fmt(result.final_gap)}; effects added: ${effects}${result.verdict ? ` — ${result.verdict}` : ""}`;
+    return `gap ${fmt(result.initial_gap)} → ${fmt(result.final_gap)}; effects added: ${effects}`;
   }
   return "";
 }
 
-/** Report files are served relative to the analysis folder: /api/v1/{fits|gaps}/{id}/files/{path}. */
+/** A finished analysis opens in the page: tables, steps and its report, rendered. */
 function reportLinks(job) {
-  const result = job.result;
-  if (!result || typeof result !== "object") return "";
-  const files = job.kind === "fit" ? [result.report].filter(Boolean) : result.report || [];
-  const folder = result.folder ? result.folder.replace(/\/?$/, "/") : "";
-  const collection = job.kind === "fit" ? "fits" : "gaps";
-  return files.map((path) => {
-    const relative = folder && path.startsWith(folder) ? path.slice(folder.length) : path.split("/").pop();
-    const url = `/api/v1/${collection}/${encodeURIComponent(job.id)}/files/${relative.split("/").map(encodeURIComponent).join("/")}`;
-    return el("a", { href: url, target: "_blank", rel: "noopener" }, relative);
-  });
+  if (!job.result || typeof job.result !== "object") return "";
+  const button = el("button", { type: "button", dataset: { open: job.id } }, "Show");
+  button.setAttribute("aria-label", `show ${job.kind} ${job.id}`);
+  button.addEventListener("click", () => renderJobResults(job));
+  return button;
 }
 
 async function startAnalysis(event) {
@@ -629,22 +662,23 @@ async function startAnalysis(event) {
 // ---- start --------------------------------------------------------------------------------------
 
 async function main() {
-  $("stop").addEventListener("click", stopRig);
+  $("stop").addEventListener("click", () => stopRig(0));
   $("login-form").addEventListener("submit", login);
   $("logout").addEventListener("click", logout);
   $("start-form").noValidate = true; // the service validates; its problem details are shown by the form
   $("start-form").addEventListener("submit", startRun);
   $("experiment").addEventListener("change", renderParams);
   $("abort").addEventListener("click", abortRun);
+  $("reset").addEventListener("click", resetRig);
   $("runs-refresh").addEventListener("click", () => refreshRuns().catch(() => {}));
   $("analysis-form").addEventListener("submit", startAnalysis);
+  $("overlay-form").addEventListener("submit", overlayRuns);
   whenUnauthorized((problem) => {
     // Only a session that ended under the user is worth a message; a first visit just gets the form.
     const wasIn = page.loggedIn;
     closeLive();
     showLogin(wasIn ? new ProblemError(401, { ...problem, title: "Session ended: log in again" }) : null);
   });
-  drawPlots();
   try {
     await request("GET", "/rig"); // a session cookie from before may still be good
     await enterApp();
