@@ -315,5 +315,137 @@ def report(base: str, key: str, home: Path, conn: Connection, clients: int) -> N
     )
 
 
+# ---- an oversized request (issue 23): a real `hdrig serve` child, its memory read from /proc ----------
+
+ABUSE_SPEEDS = 12_600_000  # the issue's request: {"speeds_rad_s": [1.0,1.0,...]}, ~50 MB
+ABUSE_TARGET_S = 1.0
+ABUSE_RSS_TARGET_MB = 100.0
+RSS_POLL_S = 0.005
+SEND_CHUNK_BYTES = 1 << 16
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError(f"no VmRSS for {pid}")
+
+
+def _abuse_body() -> bytes:
+    head = b'{"experiment": "speed-sweep", "params": {"speeds_rad_s": ['
+    return head + b"1.0," * (ABUSE_SPEEDS - 1) + b"1.0]}}"
+
+
+def _post_raw(port: int, key: str, body: bytes, chunked: bool) -> tuple[str, float]:
+    """POST the body over a plain socket, sending on a thread of its own while this one waits for the
+    answer: (status line, seconds from the first byte sent to the status line read). The answer's time,
+    not the client's: a client that writes the whole body before it reads would time its own sending."""
+    head = (
+        f"POST {API}/runs HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nAuthorization: Bearer {key}\r\n"
+        "Content-Type: application/json\r\n"
+        + ("Transfer-Encoding: chunked\r\n" if chunked else f"Content-Length: {len(body)}\r\n")
+        + "\r\n"
+    ).encode()
+    sock = socket.create_connection(("127.0.0.1", port))
+
+    def send() -> None:
+        try:
+            sock.sendall(head)
+            for i in range(0, len(body), SEND_CHUNK_BYTES):
+                part = body[i : i + SEND_CHUNK_BYTES]
+                sock.sendall(b"%x\r\n%s\r\n" % (len(part), part) if chunked else part)
+            if chunked:
+                sock.sendall(b"0\r\n\r\n")
+        except OSError:
+            pass  # the server answered and closed: the rest is not wanted
+
+    sender = threading.Thread(target=send, daemon=True)
+    started = time.perf_counter()
+    sender.start()
+    received = b""
+    while b"\r\n" not in received:
+        got = sock.recv(4096)
+        if not got:
+            break
+        received += got
+    took = time.perf_counter() - started
+    sock.close()
+    sender.join(10)
+    return received.split(b"\r\n", 1)[0].decode(errors="replace"), took
+
+
+def oversized_request() -> None:
+    """The 12.6 M-speed request against `hdrig serve --rig sim` on 127.0.0.1, sent with a Content-Length
+    and chunked: the time to its answer, and the server's RSS peak (polled every 5 ms) against its idle
+    RSS."""
+    import subprocess
+
+    from rig.core import access
+    from rig.store import RunStore
+
+    body = _abuse_body()
+    print(f"\n## An oversized request: {ABUSE_SPEEDS:,} speeds, {len(body) / 1e6:.1f} MB, to `hdrig serve`")
+    with tempfile.TemporaryDirectory(prefix="hdrig-bench-abuse-") as scratch:
+        home = Path(scratch) / "home"
+        key = access.create_key(RunStore(home), "operator", "bench")
+        port = _free_port()
+        base = f"http://127.0.0.1:{port}"
+        command = [sys.executable, "-m", "rig", "serve", "--rig", "sim", "--host", "127.0.0.1"]
+        child = subprocess.Popen(
+            [*command, "--port", str(port)],
+            env={**os.environ, "HDRIG_HOME": str(home)},
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        try:
+            deadline = time.monotonic() + START_S
+            while True:
+                try:
+                    if httpx.get(f"{base}{API}/health", timeout=2).status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                if time.monotonic() > deadline or child.poll() is not None:
+                    raise SystemExit("the service did not start")
+                time.sleep(0.2)
+            headers = {"Authorization": f"Bearer {key}"}
+            httpx.get(f"{base}{API}/rig", headers=headers, timeout=10)  # warm: imports, first answers
+            time.sleep(1.0)
+            print("| sent as | answer | time to answer | idle RSS | peak RSS | peak − idle | targets |")
+            print("|---|---|---|---|---|---|---|")
+            for chunked in (False, True):
+                idle = _rss_mb(child.pid)
+                peak = [idle]
+                done = threading.Event()
+
+                def poll(peak: list[float] = peak, done: threading.Event = done) -> None:
+                    while not done.is_set():
+                        peak[0] = max(peak[0], _rss_mb(child.pid))
+                        time.sleep(RSS_POLL_S)
+
+                watcher = threading.Thread(target=poll, daemon=True)
+                watcher.start()
+                status, took = _post_raw(port, key, body, chunked)
+                time.sleep(0.5)  # whatever the server does after answering shows in its RSS too
+                done.set()
+                watcher.join()
+                grown = peak[0] - idle
+                verdict = "PASS" if took < ABUSE_TARGET_S and grown < ABUSE_RSS_TARGET_MB else "MISS"
+                print(
+                    f"| {'chunked' if chunked else 'Content-Length'} | {status} | {took * 1e3:.0f} ms"
+                    f" | {idle:.0f} MB | {peak[0]:.0f} MB | {grown:.1f} MB | < 1 s, < 100 MB: {verdict} |"
+                )
+            jobs = httpx.get(f"{base}{API}/jobs", headers=headers, timeout=10).json()
+            health = httpx.get(f"{base}{API}/health", timeout=10).status_code
+            print(f"jobs the service took: {len(jobs)}; health afterwards: {health}")
+        finally:
+            child.terminate()
+            child.wait(10)
+
+
 if __name__ == "__main__":
-    main()
+    if "--oversized-only" in sys.argv:
+        oversized_request()
+    else:
+        main()
+        oversized_request()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -77,6 +78,13 @@ def test_voltage_sine_on_seed_is_physically_sensible(tmp_path: Path):
     assert result.returncode == 0, result.stderr
     run = read_run(out)
     moving = run["omega_m"] != 0
+    # The motor breaks away once R·i = R·u/R exceeds R·(its static friction + r·the load's)/K_m:
+    # 0.299 Ω · (0.072 · 1.0388 + 0.01 · 0.35) N·m / 0.0302 N·m/A ≈ 0.78 V, so it moves wherever
+    # |2 V · sin(πt)| > 0.78 V: 1 − 2·asin(0.39)/π ≈ 74.5 % of the time, and a little longer while it
+    # coasts to each stop. 70 % leaves room for the static level's position ripple (a few %).
+    assert np.count_nonzero(moving) > 0.70 * len(moving)
+    # The back-EMF bounds the speed: |ω_m| ≤ u_max / K_b = 2 V / 0.0302 V·s/rad ≈ 66 rad/s.
+    assert 0 < np.max(np.abs(run["omega_m"])) <= 2.0 / 0.0302
     # Friction opposes motion wherever the motor moves, and the motor sticks near each reversal.
     assert np.all(np.sign(run["F_m"][moving]) == np.sign(run["omega_m"][moving]))
     assert np.count_nonzero(~moving) > 100
@@ -108,3 +116,40 @@ def test_replay_of_a_run_without_input_column_is_refused(tmp_path: Path):
     path.write_text("t,theta_m\n0,0\n0.001,0.1\n0.002,0.2\n")
     result = hdrig("simulate", "--model", "seed", "--input-file", str(path), "--out", str(tmp_path / "o.csv"))
     assert result.returncode == 2 and "needs one of u, i_cmd, tau_m" in result.stderr
+
+
+def test_export_to_a_missing_folder_is_one_line_exit_2(tmp_path: Path):
+    env = {**os.environ, "HDRIG_HOME": str(tmp_path / "home")}
+    made = subprocess.run(
+        [sys.executable, "-m", "rig", "run", "speed-sweep", "--rig", "sim", "--set", "speeds_rad_s=[20]",
+         "--set", "hold_s=0.1", "--quiet", "--json"],
+        capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    run_id = json.loads(made.stdout)["id"]
+    out = tmp_path / "no" / "such" / "dir" / "x.csv"
+    result = subprocess.run(
+        [sys.executable, "-m", "rig", "runs", "export", run_id, "--format", "csv", "--out", str(out)],
+        capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith("hdrig: error:") and "does not exist" in line, line
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("value", "says"),
+    [("[1, 1]", "speeds must be distinct"), ("[1e6]", "less than or equal to 2000"), ("['0.5']", "number")],
+)
+def test_run_checks_the_whole_plan_before_anything_moves(tmp_path: Path, value: str, says: str):
+    env = {**os.environ, "HDRIG_HOME": str(tmp_path / "home")}
+    result = subprocess.run(
+        [sys.executable, "-m", "rig", "run", "speed-sweep", "--rig", "sim", "--set", f"speeds_rad_s={value}"],
+        capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    (line,) = result.stderr.strip().splitlines()
+    assert "speeds_rad_s" in line and says in line, line
+    runs = tmp_path / "home" / "runs"
+    assert not runs.exists() or not any(runs.iterdir()), "a refused run left a run behind"

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from datetime import UTC, datetime
@@ -195,7 +196,7 @@ def params_from_pairs(experiment: str, pairs: Sequence[str]) -> dict[str, Any]:
         if not sep or not key.strip():
             raise UserInputError(f"run {experiment}: --set {pair!r} is not key=value")
         try:
-            value = yaml.safe_load(text)
+            value = _exponents(yaml.safe_load(text))
         except yaml.YAMLError:
             raise UserInputError(f"run {experiment}: --set {pair!r}: the value is not YAML") from None
         key = key.strip()
@@ -210,6 +211,19 @@ def params_from_pairs(experiment: str, pairs: Sequence[str]) -> dict[str, Any]:
             )
         params.setdefault(name, {})[field] = value
     return params
+
+
+_EXPONENT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+
+
+def _exponents(value: Any) -> Any:
+    """YAML 1.1 reads `1e6` as text (it wants `1.0e+6`); on the command line it is the number it looks like
+    (parameters are strict: text is never taken for a number)."""
+    if isinstance(value, str) and _EXPONENT.fullmatch(value.strip()):
+        return float(value)
+    if isinstance(value, list):
+        return [_exponents(v) for v in value]
+    return value
 
 
 def execute_plan(

@@ -64,8 +64,8 @@ def within_rig_speed(speed_rad_s: float, info: ValidationInfo, what: str = "spee
         limit = float(config.control.max_velocity_rad_s)
         if abs(speed_rad_s) > limit:
             raise ValueError(
-                f"{what} {speed_rad_s:g} rad/s is beyond rig {config.name!r}'s speed saturation"
-                f" {limit:g} rad/s"
+                f"{what}: velocity set-point {speed_rad_s:g} rad/s beyond the rig's {limit:g} rad/s"
+                f" (rig {config.name!r}'s speed saturation)"
             )
     return speed_rad_s
 
