@@ -349,8 +349,8 @@ def _pf_true_grid(tr: TruthRun) -> dict[str, np.ndarray]:
 def _pf_grid_metric(tr: TruthRun, key: str) -> float:
     grid = _pf_true_grid(tr)
     column = "mean_nm" if key.startswith("asymmetry") else "half_diff_nm"
-    reduce = {"mean": np.mean, "min": np.min, "max": np.max}[key.split("_")[1]]
-    return float(reduce(grid[column]))
+    values = grid[column]
+    return float({"mean": np.mean(values), "min": np.min(values), "max": np.max(values)}[key.split("_")[1]])
 
 
 def _speed_factor(tr: TruthRun) -> float:
@@ -882,8 +882,6 @@ _add(
         rel_tol=KE_TOL,
         reason="plant law 2A (the p-p of A·sin(k·θ_m + φ) over the rows): 5 %, of which 2 % the load's"
         " inertia J_l·(k·ω_m)²/K_s adds to what θ_l − r·θ_m shows",
-        open_issue="the ramp's kinematic-error fit is 7.8 % high on the seed (0.002156 rad against 2A ="
-        " 0.002): the load's dynamics leak into it (H5)",
     ),
     Check(
         "kinematic_error_cycles_per_turn",

@@ -12,11 +12,15 @@ the arbitrary zero of a load sensor does not matter.
 - `sine`: θ_out = A·(1 − cos 2πft), i.e. a sine of amplitude A centred A above the start, starting at
   rest. RMS and maximum of θ_l − θ_out after the first `skip_periods`; gain and phase lag of θ_l
   against the set-point from a least-squares fit at f.
-- `ramp`: a slow ramp of the output up, then down at the same speed. The stick-slip amplitude is the
-  peak-to-peak of θ_l − θ_out after removing a straight line (the steady lag), over the steady part
-  of each direction, averaged over both (the RMS is given beside it). It holds everything the
-  output sees at that speed: friction stick-slip and the transmission's kinematic error alike, as an
-  output sensor on the article's bench would. Stick phases are counted apart on each side: spans of
+- `ramp`: a slow ramp of the output up, then down at the same speed. The ripple is the peak-to-peak of
+  θ_l − θ_out after removing a straight line (the steady lag), over the steady part of each direction,
+  averaged over both (`ripple_pp_rad`, RMS beside it): everything the output sees at that speed, as an
+  output sensor on the article's bench would, and on the seed mostly the transmission's kinematic
+  error. That error is estimated apart: the sinusoid in the motor angle (its cycles per motor turn
+  found by a scan) that best fits the transmission error θ_l − r·θ_m of both directions
+  (`kinematic_error_pp_rad`, `kinematic_error_cycles_per_turn`); the stick-slip is the ripple less it
+  (`stick_slip_pp_rad`, `stick_slip_rms_rad`: the load's detrended tracking error less the kinematic
+  error). Stick phases are counted apart on each side: spans of
   at least `min_stick_s` where the smoothed speed stays below `stick_speed_fraction` of the ramp
   speed. On the seed plant the motor sticks at the start and at the reversal (the integrator has to
   swing the current through the static friction band), while the load sticks and slips all along
@@ -421,16 +425,67 @@ def stuck_spans(speed: np.ndarray, threshold: float, min_cycles: int) -> tuple[n
     return starts[keep], ends[keep]
 
 
-def smoothed_speed(y: np.ndarray, params: RampParams, ctx: RigContext) -> np.ndarray:
-    """dy/dt from a quadratic Savitzky–Golay fit over speed_window_s: quiets encoder steps and noise."""
+def smoothed_speed(y: np.ndarray, params: RampParams, ctx: RigContext, deriv: int = 1) -> np.ndarray:
+    """dy/dt (d²y/dt² with deriv=2) from a quadratic Savitzky–Golay fit over speed_window_s: quiets
+    encoder steps and noise."""
     window = max(5, ctx.cycles(params.speed_window_s) | 1)
-    return np.asarray(signal.savgol_filter(y, window, 2, deriv=1, delta=1.0 / ctx.rate_hz))
+    return np.asarray(signal.savgol_filter(y, window, 2, deriv=deriv, delta=1.0 / ctx.rate_hz))
+
+
+KE_MAX_CYCLES_PER_TURN = 500
+"""Highest cycles per motor turn the kinematic error is looked for at (whole numbers: the error repeats
+with the wave generator's turn) [1/turn]."""
+
+
+def kinematic_error_fit(
+    tracks: list[OutputTrack],
+    r: float,
+    sliding: list[np.ndarray],
+    direction: list[np.ndarray],
+    acceleration: list[np.ndarray],
+) -> tuple[float, list[np.ndarray]]:
+    """The kinematic error as a sinusoid in the motor angle, from the transmission error θ_l − r·θ_m
+    (= kinematic error − twist) of the ramp's directions, on the samples where the load slides (`sliding`,
+    one mask per track): a stuck load holds θ_l while the error turns, the spring taking it up, which
+    would bias the fit low. Sliding, the twist is the load friction's level over K_s on the side the
+    load slides (`direction`, ±1), plus J_l/K_s times the load's `acceleration` (its slips and the load
+    mode), plus a constant per track: all fitted beside the sinusoid. Cycles
+    per motor turn k: the whole number whose sinusoid fits best. Returns k and the fitted error along
+    each track [1/turn, rad]."""
+    angles = [track.motor / r for track in tracks]  # motor angle from the start [rad]
+    errors = [track.load - track.motor for track in tracks]
+    n_tracks = len(tracks)
+    theta = np.concatenate([a[m] for a, m in zip(angles, sliding, strict=True)])
+    e = np.concatenate([x[m] for x, m in zip(errors, sliding, strict=True)])
+    side = np.concatenate([d[m] for d, m in zip(direction, sliding, strict=True)])
+    accel = np.concatenate([a[m] for a, m in zip(acceleration, sliding, strict=True)])
+    which = np.concatenate([np.full(int(np.sum(m)), i) for i, m in enumerate(sliding)])
+    rest = np.column_stack([side, accel, *[(which == i).astype(float) for i in range(n_tracks)]])
+
+    def fit(k: float) -> tuple[float, np.ndarray]:
+        basis = np.column_stack([np.cos(k * theta), np.sin(k * theta), rest])
+        coef, residual, *_ = np.linalg.lstsq(basis, e, rcond=None)
+        return float(residual[0]) if residual.size else float(np.sum((basis @ coef - e) ** 2)), coef
+
+    if theta.size < 8:
+        return float("nan"), [np.zeros_like(a) for a in angles]
+    # Coarse: the projection on cos/sin at each whole k, then the best few refitted with the rest.
+    ks = np.arange(1, KE_MAX_CYCLES_PER_TURN + 1, dtype=float)
+    centred = e - np.mean(e)
+    power = np.array([abs(np.exp(-1j * k * theta) @ centred) for k in ks])
+    candidates = ks[np.argsort(power)[-5:]]
+    k = float(min(candidates, key=lambda c: fit(c)[0]))
+    coef = fit(k)[1]
+    return k, [coef[0] * np.cos(k * a) + coef[1] * np.sin(k * a) for a in angles]
 
 
 class Ramp(Experiment):
     name = "ramp"
     start_on_turn: ClassVar[bool] = True  # the runner starts it on a whole motor turn (see module doc)
-    summary = "slow output ramp up and down; stick-slip amplitude of the load angle, stick phases"
+    summary = (
+        "slow output ramp up and down; ripple of the load angle, its kinematic error and stick-slip apart,"
+        " stick phases"
+    )
     Params = RampParams
     needs = frozenset({ControlMode.POSITION})
 
@@ -444,18 +499,36 @@ class Ramp(Experiment):
     def analyze(self, run: Run, params: RampParams, ctx: RigContext) -> Results:
         skip = ctx.cycles(params.skip_s)
         table: dict[str, list[float]] = {"direction": []}
+        tracks, sliding, direction, acceleration = [], [], [], []
         for label in RAMP_LABELS:
             rows = segment_rows(run, label)
             track = output_track(run, ctx, slice(rows.start + skip, rows.stop))
+            speed = smoothed_speed(track.load, params, ctx)
+            tracks.append(track)
+            sliding.append(np.abs(speed) >= params.stick_speed_fraction * params.speed_out_rad_s)
+            direction.append(np.sign(speed))
+            acceleration.append(smoothed_speed(track.load, params, ctx, deriv=2))
+        cycles_per_turn, kinematic = kinematic_error_fit(
+            tracks, ctx.gear_ratio, sliding, direction, acceleration
+        )
+        for label, track, ke in zip(RAMP_LABELS, tracks, kinematic, strict=True):
             table["direction"].append(1.0 if label == RAMP_LABELS[0] else -1.0)
             for side, _ in SIDES:
                 residual = detrended(track.t_s, getattr(track, side) - track.setpoint)
                 table.setdefault(f"{side}_pp_rad", []).append(float(np.ptp(residual)))
                 table.setdefault(f"{side}_rms_rad", []).append(float(np.sqrt(np.mean(residual**2))))
+            stick = detrended(track.t_s, track.load - ke - track.setpoint)
+            table.setdefault("load_stick_slip_pp_rad", []).append(float(np.ptp(stick)))
+            table.setdefault("load_stick_slip_rms_rad", []).append(float(np.sqrt(np.mean(stick**2))))
+            table.setdefault("kinematic_error_pp_rad", []).append(float(np.ptp(ke)))
         columns = {name: np.asarray(values) for name, values in table.items()}
         metrics: dict[str, float | int | str] = {
-            "stick_slip_pp_rad": float(np.mean(columns["load_pp_rad"])),
-            "stick_slip_rms_rad": float(np.mean(columns["load_rms_rad"])),
+            "ripple_pp_rad": float(np.mean(columns["load_pp_rad"])),
+            "ripple_rms_rad": float(np.mean(columns["load_rms_rad"])),
+            "kinematic_error_pp_rad": float(np.mean(columns["kinematic_error_pp_rad"])),
+            "kinematic_error_cycles_per_turn": cycles_per_turn,
+            "stick_slip_pp_rad": float(np.mean(columns["load_stick_slip_pp_rad"])),
+            "stick_slip_rms_rad": float(np.mean(columns["load_stick_slip_rms_rad"])),
             "motor_stick_slip_pp_rad": float(np.mean(columns["motor_pp_rad"])),
         }
         track = output_track(run, ctx, program_rows(run))
@@ -481,9 +554,12 @@ class Ramp(Experiment):
             f"Low-speed ramp, {params.speed_out_rad_s:g} rad/s at the output, up and down", 2
         )
         track = output_track(run, ctx, program_rows(run))
-        pp = results.metrics["stick_slip_pp_rad"]
+        pp, stick = results.metrics["ripple_pp_rad"], results.metrics["stick_slip_pp_rad"]
         ax.plot(
-            track.t_s, track.load - track.setpoint, lw=0.8, label=f"load θ_l (stick-slip {pp:.2g} rad p-p)"
+            track.t_s,
+            track.load - track.setpoint,
+            lw=0.8,
+            label=f"load θ_l (ripple {pp:.2g} rad p-p, of which stick-slip {stick:.2g})",
         )
         ax.plot(track.t_s, track.motor - track.setpoint, lw=0.8, label="motor r·θ_m")
         ax.set_ylabel("tracking error [rad]")
