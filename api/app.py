@@ -270,7 +270,7 @@ class ModelUpload(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     name: str = Field(
-        pattern=MODEL_NAME_PATTERN.pattern,
+        pattern=f"^{MODEL_NAME_PATTERN.pattern}$",
         max_length=64,
         description="1-64 letters, digits, '_' or '-': what runs (`params.model`) and fits (`model`) name",
     )

@@ -203,6 +203,7 @@ class Catalog:
         """The catalog as told in messages: SQLite's file, else the URL without its password."""
         if self.is_sqlite and self.url.database not in (None, "", ":memory:"):
             Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
+            _private(Path(str(self.url.database)))
         self.engine = _engine(self.url)
         self._migrate()
         if self.is_sqlite and self.url.database not in (None, "", ":memory:"):
@@ -317,6 +318,19 @@ def _identity(path: str) -> tuple[int, int] | None:
     except (OSError, ValueError):
         return None
     return (found.st_dev, found.st_ino)
+
+
+def _private(path: Path) -> None:
+    """The catalog's file made 0600 before SQLite first opens it (SQLite gives its WAL, SHM and journal
+    the database file's mode), and an older catalog's files made so. Created only when absent: a file
+    of a catalog this process may have open is never opened here (chmod opens nothing)."""
+    if not path.exists():
+        with contextlib.suppress(FileExistsError):  # another process made it meanwhile: chmod below
+            os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    for name in (str(path), *(str(path) + suffix for suffix in SQLITE_SIDE_FILES)):
+        with contextlib.suppress(FileNotFoundError):
+            if os.stat(name).st_mode & 0o077:
+                os.chmod(name, 0o600)
 
 
 def _guard(path: Path) -> None:

@@ -340,7 +340,13 @@ class RunStore:
     ) -> None:
         self.home = Path(home) if home is not None else default_home()
         try:
-            (self.home / "runs").mkdir(parents=True, exist_ok=True)
+            # The store is this user's: its folders 0700 (a run's files, the keys' hashes and the audit
+            # log are nobody else's to read), the catalog's files 0600 (`Catalog`).
+            self.home.mkdir(mode=0o700, parents=True, exist_ok=True)
+            (self.home / "runs").mkdir(mode=0o700, exist_ok=True)
+            for folder in (self.home, self.home / "runs"):
+                if folder.stat().st_mode & 0o077:
+                    folder.chmod(0o700)
         except OSError as exc:
             raise StoreError(
                 f"{self.home}: cannot hold the run store ({exc.strerror});"
@@ -466,7 +472,7 @@ class RunStore:
         else:
             raise RuntimeError(f"could not find a free run id for {experiment!r} in {self.catalog.where}")
         run_id = chosen
-        self.run_dir(run_id).mkdir()
+        self.run_dir(run_id).mkdir(mode=0o700)
         self.data.make_run_folder(run_id)
         return RunWriter(self, run_id, columns, flush_interval_s, background, max_pending_rows, meta)
 
@@ -521,10 +527,15 @@ class RunStore:
                 continue
             with self.catalog.write() as db:
                 # Only the lister whose update lands seals the run, so two listers never seal it together.
+                where = f" on {row['host']}" if row.get("host") else ""
                 claimed = db.execute(
                     runs.update()
                     .where(runs.c.id == row["id"], runs.c.status == RunStatus.RUNNING.value)
-                    .values(status=RunStatus.INTERRUPTED.value)
+                    .values(
+                        status=RunStatus.INTERRUPTED.value,
+                        reason=f"interrupted: the recording process (pid {row['pid']}{where}) ended before"
+                        " the run did; its samples up to the last flush are kept",
+                    )
                 ).rowcount
             if not claimed:
                 continue
@@ -537,6 +548,10 @@ class RunStore:
                     runs.update()
                     .where(runs.c.id == row["id"])
                     .values(samples=samples, path=path, ended=ended)
+                )
+                meta = db.execute(sa.select(runs.c.meta).where(runs.c.id == row["id"])).scalar()
+                db.execute(
+                    runs.update().where(runs.c.id == row["id"]).values(progress=_progress(meta, samples))
                 )
             changed = True
         return changed
@@ -914,6 +929,17 @@ def export_path(run_id: str, fmt: str, out_path: str | os.PathLike[str]) -> Path
     elif out.suffix.lower() != f".{fmt}":
         raise UserInputError(f"{out}: suffix {out.suffix!r} does not match the export format {fmt!r}")
     return out
+
+
+def _progress(meta_json: str | None, samples: int) -> float | None:
+    """How far a run that ended early got: its samples against the end of its planned segments (the
+    runner writes the segment table into the metadata before the first segment plays); None unknown."""
+    try:
+        segments = json.loads(meta_json or "{}").get("segments") or []
+        planned = max(int(seg["start"]) + int(seg["cycles"]) for seg in segments)
+    except (ValueError, TypeError, KeyError, AttributeError):
+        return None
+    return min(1.0, samples / planned) if planned > 0 else None
 
 
 def _may_hold(stats: Any, lo: float, hi: float) -> bool:

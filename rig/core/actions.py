@@ -313,7 +313,7 @@ def _document(store: RunStore, entry: dict[str, Any], with_artifacts: bool) -> R
         started=entry["started"],
         ended=entry["ended"],
         samples=entry["samples"],
-        progress=1.0 if status == RunStatus.COMPLETE else 0.0,
+        progress=1.0 if status == RunStatus.COMPLETE else float(entry.get("progress") or 0.0),
         metrics=entry["metrics"],
         meta=entry["meta"],
         path=entry["path"],
