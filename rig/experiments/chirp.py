@@ -433,7 +433,9 @@ class Chirp(Experiment):
         for colour, (name, (_, _, what, unit)) in zip(("C0", "C1", "C2"), FRFS.items(), strict=True):
             table = results.tables[name]
             freq = table["freq_hz"]
-            mag_ax.semilogx(freq, table["magnitude_db"], colour, label=f"{what} [dB {unit}]")
+            mag_ax.semilogx(freq, table["magnitude_db"], colour, label=f"{what} [dB {unit}] ±2σ")
+            low_db, high_db = (table["magnitude_db"] + k * table["magnitude_std_db"] for k in (-2, 2))
+            mag_ax.fill_between(freq, low_db, high_db, color=colour, alpha=0.2)
             phase_ax.semilogx(freq, table["phase_deg"], colour)
             coh_ax.semilogx(freq, table["coherence"], colour)
         for frequency in (results.metrics.get("antiresonance_hz"), results.metrics.get("resonance_hz")):
