@@ -51,6 +51,7 @@ FIRST_POINTS_S = 15.0  # the worker opens the rig and the first 0.25 s block is 
 STOP_S = 10.0  # quick stop: the motor coasts to rest and the run is sealed
 RECORD_S = 120.0  # a CLI sweep on the virtual-time rig: a cold start and ~5 s of simulation
 ANALYSIS_S = 120.0  # a fit of one sweep (~16 s here) and a gap analysis (~22 s), one after the other
+UNIT = "HD-BROWSER-1"  # the gear unit the recorded sweeps were made on: its trend has both
 WIDTHS = (360, 1280, 1920)  # a phone, a lab PC, a wide lab monitor
 SHOTS = ROOT / "out" / "browser"  # screenshots kept as the test's artifacts (/out/ is git-ignored)
 AXE = ROOT / "tests" / "vendor" / "axe.min.js"  # axe-core from npm (MPL-2.0, tests/vendor/axe-core.LICENSE)
@@ -103,7 +104,7 @@ def _wait_healthy(url: str, process: subprocess.Popen[bytes], log: Path) -> None
 
 def _record(env: dict[str, str], *settings: str) -> subprocess.Popen[str]:
     """A run recorded by the CLI on the virtual-time sim rig (seconds, not a bench's minutes)."""
-    args = [str(HDRIG), "run", "speed-sweep", "--rig", "sim", "--json", "-q"]
+    args = [str(HDRIG), "run", "speed-sweep", "--rig", "sim", "--unit", UNIT, "--json", "-q"]
     for setting in settings:
         args += ["--set", setting]
     return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -420,6 +421,11 @@ def test_results_render_in_the_page_at_every_width(browser: object, service: Ser
     expect(page.locator("#results-body figure img").first).to_be_visible()
     assert page.locator("#results-body figure img").first.evaluate("i => i.naturalWidth") > 0
 
+    # The unit's trend: a metric of each complete sweep of the unit, against when it ran.
+    trend = page.locator("[data-testid=trend]")
+    expect(trend).to_have_attribute("data-points", "2", timeout=10_000)
+    expect(trend.locator(".uplot canvas").first).to_be_visible()
+
     # Two runs overlaid on one time axis.
     page.select_option("#overlay-run", short)
     page.click("#overlay-form button[type=submit]")
@@ -432,7 +438,7 @@ def test_results_render_in_the_page_at_every_width(browser: object, service: Ser
         page.locator("#run-results").scroll_into_view_if_needed()
         _no_horizontal_scroll(page)
         _stop_on_screen_and_uncovered(page)
-        page.locator("figure[data-artifact='friction_vs_velocity.csv']").scroll_into_view_if_needed()
+        page.evaluate("() => document.querySelector('#run-results').scrollIntoView()")
         chart = figure.locator(".uplot").bounding_box()
         assert chart is not None and chart["x"] >= 0 and chart["x"] + chart["width"] <= width, chart
         _shot(page, "run-results")
@@ -454,6 +460,8 @@ def test_results_render_in_the_page_at_every_width(browser: object, service: Ser
     report = page.locator("#job-results [data-testid=report]")
     expect(report.locator("table").first).to_be_visible(timeout=10_000)  # rendered Markdown, not text
     expect(report).not_to_contain_text("|---")
+    page.evaluate("() => document.querySelector('#job-results').scrollIntoView()")
+    _shot(page, "fit")
 
     # The gap analysis: its steps and verdict as a table and text.
     gaps_row = page.locator("#jobs tbody tr[data-kind=gaps]")
@@ -468,7 +476,7 @@ def test_results_render_in_the_page_at_every_width(browser: object, service: Ser
         _no_horizontal_scroll(page)
         _stop_on_screen_and_uncovered(page)
         _axe(page)
-        page.locator("#job-results").scroll_into_view_if_needed()
+        page.evaluate("() => document.querySelector('#job-results').scrollIntoView()")
         _shot(page, "analyses")
         _shot(page, "page", full_page=True)
     assert page_errors == []

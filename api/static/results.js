@@ -192,8 +192,50 @@ export async function showRunResults(run, recentRuns) {
       ),
     );
   }
+  if (run.unit) figures.push(unitTrend(run));
   body.replaceChildren(...(figures.length ? figures : [el("p", {}, "this run has no results")]));
   for (const draw of charts) draw(); // once in the page, so each plot takes its box's width
+}
+
+const TREND_RUNS = 200; // the newest complete runs of the unit and experiment
+
+/** A unit's trend: one metric of every complete run of the same experiment on the same gear unit,
+ * against the run's start (GET /runs?unit=...&experiment=...). */
+function unitTrend(run) {
+  const select = el("select", { id: "trend-metric", "aria-label": "metric to follow" });
+  const box = el("div", { class: "chart", dataset: { testid: "trend" } });
+  const figure = el(
+    "figure",
+    { class: "wide", dataset: { artifact: "trend" } },
+    el("figcaption", {}, `trend of unit ${run.unit} (${run.experiment})`),
+    el("label", {}, "metric ", select),
+    box,
+  );
+  const query = `unit=${encodeURIComponent(run.unit)}&experiment=${encodeURIComponent(run.experiment)}&status=complete&limit=${TREND_RUNS}`;
+  request("GET", `/runs?${query}`)
+    .then((runs) => {
+      const dated = runs.filter((r) => r.started && r.metrics).sort((a, b) => Date.parse(a.started) - Date.parse(b.started));
+      const names = [...new Set(dated.flatMap((r) => Object.keys(r.metrics).filter((k) => typeof r.metrics[k] === "number")))];
+      select.replaceChildren(...names.map((n) => el("option", { value: n }, n)));
+      const draw = () => {
+        const name = select.value;
+        const points = dated.filter((r) => Number.isFinite(r.metrics[name]));
+        makeChart(box, {
+          title: `${name}: ${points.length} runs of ${run.unit}`,
+          xLabel: "run started",
+          yLabel: name,
+          xTime: true,
+          series: [{ label: name, color: COLORS[0], points: true, spanGaps: true }],
+          data: [points.map((r) => Date.parse(r.started) / 1000), points.map((r) => r.metrics[name])],
+        });
+        box.dataset.points = String(points.length);
+      };
+      select.addEventListener("change", draw);
+      if (names.length) draw();
+      else box.replaceChildren(el("p", {}, "no complete run of this unit has metrics"));
+    })
+    .catch((error) => box.replaceChildren(el("p", { class: "problem" }, error.message)));
+  return figure;
 }
 
 function fillOverlayChoices(run, recentRuns) {
