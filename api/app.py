@@ -2,8 +2,13 @@
 
 A thin shell: every route calls `rig.core` (actions, the rig worker, the analysis worker, access) and
 answers with the core's documents; no experiment, fit or store logic lives here. Routes are plain
-functions, so FastAPI runs them on its thread pool and a slow disk never holds the event loop; only
-the event stream is a coroutine (it polls the worker's event log with short sleeps).
+functions, so FastAPI runs them on its thread pool and a slow disk never holds the event loop; the
+event stream is a coroutine (it polls the worker's event log with short sleeps), and so is the stop,
+which must not wait for that pool: it stops the motor on the event loop and does the rest on threads
+of its own (the stop lane).
+
+Going away (`stop_service`, called by `hdrig serve` on SIGTERM, SIGINT or SIGHUP): the motor stops
+first, the run playing is sealed `aborted`, then every event stream ends with a `closed` event saying why.
 """
 
 from __future__ import annotations
@@ -12,8 +17,11 @@ import asyncio
 import json
 import shutil
 import tempfile
-from collections.abc import AsyncIterator, Iterator
+import threading
+from collections.abc import AsyncIterator, Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
+from functools import partial
 from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
@@ -24,6 +32,7 @@ from fastapi import APIRouter, Depends, FastAPI, Header, Query, Request, Respons
 from fastapi import Path as PathParam
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
@@ -49,7 +58,7 @@ from model.params import load_model, parse_model, preset_names
 from rig.catalog import DEFAULT_PAGE, MAX_PAGE
 from rig.config import RigConfig
 from rig.core import access, actions
-from rig.core.access import AuditEntry, KeyInfo
+from rig.core.access import AuditEntry, KeyInfo, Role
 from rig.core.documents import ExperimentInfo, JobDocument, JobKind, JobStatus, ModelSummary, RunDocument
 from rig.core.events import Event, EventKind
 from rig.core.worker import AnalysisWorker, Job, RigWorker, UnknownJobError
@@ -64,6 +73,9 @@ STREAM_KINDS = frozenset(
 )
 STREAM_POLL_S = 0.02  # the event stream's poll of the log: a live plot's latency, a negligible load
 KEEP_ALIVE_S = 10.0  # a comment line this often keeps proxies and browsers from closing a quiet stream
+STOP_LANE_THREADS = 2  # the stop's own threads: its key check and answer never queue behind others
+SEAL_WAIT_S = 2.0  # going away: how long the stopped run may take to be sealed before streams end
+CLOSE_WAIT_S = 1.0  # then how long the lifespan waits for each worker's thread (the process exits regardless)
 REPORT_DIR = "report"
 QUEUE_MAX = 20  # jobs waiting for the rig: a working day of campaigns; more is a client gone wrong
 AUDIT_PAGE_MAX = 1000  # audit lines in one answer
@@ -219,13 +231,32 @@ def rig_status(request: Request, who: Viewer) -> RigStatus:
     )
 
 
+async def _on_stop_lane(request: Request, call: Callable[..., Any], *args: Any) -> Any:
+    lane: ThreadPoolExecutor = request.app.state.stop_lane
+    return await asyncio.get_running_loop().run_in_executor(lane, partial(call, *args))
+
+
+async def _operator_now(
+    request: Request,
+    bearer: Annotated[HTTPAuthorizationCredentials | None, Depends(auth.bearer_scheme)],
+    cookie: Annotated[str | None, Depends(auth.cookie_scheme)],
+) -> Principal:
+    """`auth.operator` on the stop lane: a thread pool saturated by slow requests must not hold a stop."""
+    who: Principal = await _on_stop_lane(request, auth.principal, request, bearer, cookie)
+    return auth.require(Role.OPERATOR)(who)
+
+
 @router.post(
     "/rig/stop", response_model=RigStatus, status_code=202, tags=["rig"], summary="stop everything now"
 )
-def rig_stop(request: Request, who: Operator) -> RigStatus:
-    _worker(request).quick_stop(f"quick stop by {who.name}")
-    _audit(request, who, "stop", _worker(request).config.name)
-    return rig_status(request, who)
+async def rig_stop(request: Request, who: Annotated[Principal, Depends(_operator_now)]) -> RigStatus:
+    worker = _worker(request)
+    why = f"quick stop by {who.name}"
+    worker.rig.quick_stop(why)  # the motor now, on the event loop: any thread may, no lock of ours
+    await _on_stop_lane(request, worker.quick_stop, why)  # then the queue and the state
+    await _on_stop_lane(request, _audit, request, who, "stop", worker.config.name)
+    status: RigStatus = await _on_stop_lane(request, rig_status, request, who)
+    return status
 
 
 @router.post("/rig/reset", response_model=RigStatus, tags=["rig"], summary="leave the faulted state")
@@ -579,8 +610,9 @@ def _final(event: Event, run_id: str) -> bool:
 async def _event_stream(
     worker: RigWorker, run_id: str, after: int, document: RunDocument, resumed: bool
 ) -> AsyncIterator[str]:
-    """The run's events newer than `after`, until its final `run` event. A client that goes away only
-    ends this generator: the run goes on."""
+    """The run's events newer than `after`, until its final `run` event, or the `closed` event of a
+    service going away (its last word, saying why). A client that goes away only ends this generator:
+    the run goes on."""
     loop = asyncio.get_running_loop()
     quiet_since = loop.time()
     if document.status.finished and not any(
@@ -594,12 +626,18 @@ async def _event_stream(
         events = worker.events.since(after, run_id)
         for event in events:
             after = event.id
+            if event.kind == EventKind.CLOSED:
+                yield _sse(event.id, event.kind, event.data)
+                return
             if event.kind not in STREAM_KINDS:
                 continue
             yield _sse(event.id, event.kind, _clean(event.data))
             quiet_since = loop.time()
-            if _final(event, run_id):
-                return
+            if _final(event, run_id) and worker.closing_reason is None:
+                return  # (a service going away still says so: its `closed` event follows shortly)
+        if not events and worker.closed is not None:  # closed before this stream began
+            yield _sse(worker.closed.id, EventKind.CLOSED, worker.closed.data)
+            return
         if not events:
             if loop.time() - quiet_since >= KEEP_ALIVE_S:
                 quiet_since = loop.time()
@@ -746,13 +784,47 @@ def gaps_file(job_id: JobId, path: str, request: Request, who: Viewer) -> FileRe
 # ---- keys and the audit log (admin) -------------------------------------------------------------------
 
 
-@router.get("/keys", response_model=list[KeyInfo], tags=["admin"], summary="every API key (never the key)")
+@router.get(
+    "/keys",
+    response_model=list[KeyInfo],
+    tags=["admin"],
+    summary="every API key (never the key), oldest first",
+    responses={
+        200: {
+            "description": "every key, live and revoked, oldest first",
+            # The oldest key (the first start's admin key, often) revoked by name: 409 while it is the
+            # last live admin key. Stateful clients (and schemathesis) follow this.
+            "links": {
+                "RevokeOldestKey": {
+                    "operationRef": "#/paths/~1api~1v1~1keys~1{name}/delete",
+                    "parameters": {"name": "$response.body#/0/name"},
+                }
+            },
+        }
+    },
+)
 def keys(request: Request, who: Admin) -> list[KeyInfo]:
     return access.list_keys(_store(request))
 
 
 @router.post(
-    "/keys", response_model=NewKey, status_code=201, tags=["admin"], summary="make a key (shown once)"
+    "/keys",
+    response_model=NewKey,
+    status_code=201,
+    tags=["admin"],
+    summary="make a key (shown once)",
+    responses={
+        201: {
+            "description": "the key, shown this once",
+            # The key made can be revoked by its name: stateful clients (and schemathesis) follow this.
+            "links": {
+                "RevokeKey": {
+                    "operationRef": "#/paths/~1api~1v1~1keys~1{name}/delete",
+                    "parameters": {"name": "$response.body#/name"},
+                }
+            },
+        }
+    },
 )
 def create_key(body: KeyRequest, request: Request, who: Admin) -> NewKey:
     name, token = access.make_key(_store(request), body.role, body.name, who.name, who.role, door="api")
@@ -796,20 +868,37 @@ def _page() -> HTMLResponse | FileResponse:
     )
 
 
+def stop_service(app: FastAPI, why: str) -> None:
+    """The service is going away (`hdrig serve` calls this on SIGTERM, SIGINT or SIGHUP, before uvicorn
+    waits on anything): the motor stops now, on the calling thread; then, on a thread of its own, the
+    queue is cancelled, no job is taken any more, the run playing is sealed `aborted: <why>` (up to
+    SEAL_WAIT_S) and every event stream ends with a `closed` event saying why. Safe to call again."""
+    worker: RigWorker | None = getattr(app.state, "worker", None)
+    if worker is None:  # still opening the rig: nothing can be moving yet
+        return
+    worker.rig.quick_stop(why)
+    threading.Thread(
+        target=worker.shutdown, args=(why, SEAL_WAIT_S), name="hdrig-service-stop", daemon=True
+    ).start()
+
+
 def create_app(rig_config: RigConfig, store: RunStore) -> FastAPI:
     """The service for one rig: the lifespan opens the rig (RigWorker) and the analysis worker and
-    closes them at shutdown (a run still playing is quick-stopped and kept, `aborted`)."""
+    closes them at shutdown (a run still playing is quick-stopped and kept, `aborted`), waiting at most
+    CLOSE_WAIT_S for each worker's thread."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        app.state.stop_lane = ThreadPoolExecutor(STOP_LANE_THREADS, thread_name_prefix="hdrig-stop")
         worker = await asyncio.to_thread(RigWorker, rig_config, store)
         app.state.worker = worker
         app.state.analysis = AnalysisWorker(worker.events)
         try:
             yield
         finally:
-            app.state.analysis.close()
-            await asyncio.to_thread(worker.close)
+            app.state.analysis.close(CLOSE_WAIT_S)  # a fit still running is left to die with the process
+            await asyncio.to_thread(worker.close, CLOSE_WAIT_S)
+            app.state.stop_lane.shutdown(wait=False)
 
     app = FastAPI(
         title="hdrig",

@@ -9,6 +9,7 @@ to stderr.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import importlib
 import importlib.util
@@ -17,7 +18,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
@@ -529,6 +530,9 @@ def cmd_twin(args: argparse.Namespace) -> int:
 
 
 SERVICE_MODULE = "api.app"
+SERVICE_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, n))
+SERVICE_EXIT_S = 5.0  # a signal to `hdrig serve` ends the process within this, however many clients follow
+STREAMS_GRACE_S = 3  # [s] uvicorn's wait for open responses; event streams end by themselves well before
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -546,15 +550,77 @@ def cmd_serve(args: argparse.Namespace) -> int:
         key = access.create_key(store, access.Role.ADMIN, "admin", door="first start of hdrig serve")
         _say(f"hdrig: no API key in {store.home}: made an admin key, shown only this once:\n    {key}")
         _say(f"hdrig: open http://{host}:{args.port}/ and log in with it (or: Authorization: Bearer <key>)")
-    else:
-        _say(f"hdrig: serving rig {config.name} on http://{host}:{args.port}/ (store {store.home})")
     # The service sits above the rig (api imports rig.core): found by name, as the backends are.
     service = importlib.import_module(SERVICE_MODULE)
-    if hasattr(signal, "SIGHUP") and threading.current_thread() is threading.main_thread():
-        # uvicorn shuts down gracefully on SIGTERM only (its lifespan quick-stops the rig): SIGHUP too.
-        signal.signal(signal.SIGHUP, lambda *_: signal.raise_signal(signal.SIGTERM))
-    uvicorn.run(service.create_app(config, store), host=args.host, port=args.port, log_level="warning")
-    return 0
+    app = service.create_app(config, store)
+    served = uvicorn.Config(
+        app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=STREAMS_GRACE_S
+    )
+
+    def listening(port: int) -> None:
+        _say(
+            f"hdrig: serving rig {config.name} on http://{host}:{port}/ (store {store.home});"
+            " Ctrl-C stops the rig and exits"
+        )
+
+    server = _service_server(uvicorn.Server, served, lambda why: service.stop_service(app, why), listening)
+    server.run()
+    if server.signum is None:
+        return 0
+    name = signal.Signals(server.signum).name
+    _say(f"hdrig: {name}: the rig was quick-stopped at the signal; the service has stopped")
+    # Stopped, its run sealed, its streams ended: nothing is left to save, so the process ends here rather
+    # than tearing down its modules (numba, pyarrow, matplotlib: seconds on a loaded machine).
+    sys.stdout.flush()
+    os._exit(128 + server.signum)
+
+
+def _service_server(
+    base: type[Any], served: Any, stop: Callable[[str], None], listening: Callable[[int], None]
+) -> Any:
+    """uvicorn's server with one stop path: SIGTERM, SIGINT and SIGHUP quick-stop the rig first (`stop`,
+    in the signal handler, before uvicorn waits on any connection), then uvicorn shuts down; the service
+    ends its event streams itself; a watchdog ends the process SERVICE_EXIT_S after the signal whatever
+    is still running (exit status 128 + the signal)."""
+
+    class Service(base):
+        signum: int | None = None
+
+        async def startup(self, sockets: Any = None) -> None:
+            await super().startup(sockets=sockets)
+            if self.started and self.servers and self.servers[0].sockets:
+                listening(self.servers[0].sockets[0].getsockname()[1])
+
+        @contextlib.contextmanager
+        def capture_signals(self) -> Iterator[None]:
+            # uvicorn's own handles SIGINT and SIGTERM, and raises them again once it has shut down;
+            # here the three are handled alike, and cmd_serve returns the exit status instead.
+            if threading.current_thread() is not threading.main_thread():
+                yield
+                return
+            before = {number: signal.signal(number, self.handle_exit) for number in SERVICE_SIGNALS}
+            try:
+                yield
+            finally:
+                for number, handler in before.items():
+                    signal.signal(number, handler)
+
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            if self.signum is None:
+                self.signum = sig
+                stop(f"quick stop: the service got {signal.Signals(sig).name}")  # the motor, first
+                watchdog = threading.Timer(SERVICE_EXIT_S, _exit_now, args=(sig,))
+                watchdog.daemon = True
+                watchdog.start()
+            super().handle_exit(sig, frame)
+
+    return Service(served)
+
+
+def _exit_now(signum: int) -> None:
+    name = signal.Signals(signum).name
+    _say(f"hdrig: still running {SERVICE_EXIT_S:g} s after {name}: exiting now (the rig was quick-stopped)")
+    os._exit(128 + signum)
 
 
 # --- parser ---------------------------------------------------------------------------------------

@@ -116,6 +116,7 @@ class Rig(ABC):
         self._enabled = False
         self._last_abort: str | None = None
         self._stop_requested = threading.Event()
+        self._stop_why: str | None = None  # who asked for the pending quick stop, for the abort reason
         self.t_s = 0.0  # rig clock: time of the next sample [s]
         self._lock: RigLock | None = None  # a hardware rig's, taken by open_rig
 
@@ -124,6 +125,7 @@ class Rig(ABC):
     def enable(self) -> None:
         """Power the drive (CiA 402: OPERATION ENABLED). Clears a previous quick stop."""
         self._stop_requested.clear()
+        self._stop_why = None
         self._enable()
         self._enabled = True
 
@@ -133,8 +135,13 @@ class Rig(ABC):
             self._disable()
         self._enabled = False
 
-    def quick_stop(self) -> None:
-        """Defensive stop: always safe to call, from any thread, any number of times, in any state."""
+    def quick_stop(self, why: str | None = None) -> None:
+        """Defensive stop: always safe to call, from any thread, any number of times, in any state.
+
+        `why` (e.g. "quick stop by alice") becomes the aborted segment's reason, `aborted: <why>`; the
+        first stop asked since `enable()` names it (default: `aborted: quick stop requested`)."""
+        if why is not None and not self._stop_requested.is_set():
+            self._stop_why = why
         self._stop_requested.set()
         self._quick_stop()
         self._enabled = False
@@ -172,7 +179,7 @@ class Rig(ABC):
         (`DeviceFaultError`) quick-stops the rig, is kept as its last abort, and is raised.
         """
         if self._stop_requested.is_set():
-            return self._abort(SegmentResult(0, "aborted: quick stop requested"))
+            return self._abort(SegmentResult(0, self._stop_reason()))
         if not self._enabled:  # never enabled: the caller's bug, neither bad input nor a device fault
             raise RuntimeError(f"rig {self.config.name!r} is not enabled: call enable() first")
         self.check_segment(segment)
@@ -181,7 +188,7 @@ class Rig(ABC):
         done = 0
         while done < segment.cycles:
             if self._stop_requested.is_set():
-                return self._abort(SegmentResult(done, "aborted: quick stop requested"))
+                return self._abort(SegmentResult(done, self._stop_reason()))
             n = min(chunk, segment.cycles - done)
             try:
                 if segment.feedforward is None:
@@ -244,6 +251,9 @@ class Rig(ABC):
         return None
 
     # --- shared helpers ---------------------------------------------------------------------------------
+
+    def _stop_reason(self) -> str:
+        return f"aborted: {self._stop_why or 'quick stop requested'}"
 
     def _abort(self, result: SegmentResult) -> SegmentResult:
         self.quick_stop()

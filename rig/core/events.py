@@ -27,6 +27,7 @@ class EventKind(StrEnum):
     ALARM = "alarm"  # an abort, a trip, a device fault, a quick stop
     RUN = "run"  # a run started or ended (its document)
     JOB = "job"  # a job was queued, started or ended (its document)
+    CLOSED = "closed"  # the service is going away (a signal): the last event of every stream, saying why
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from model.errors import UserInputError
 from rig.config import RigConfig
 from rig.core.actions import execute_plan, reserve_run_id
 from rig.core.documents import JobDocument, JobKind, JobStatus, Progress, RunDocument, RunPlan
-from rig.core.events import EventKind, EventLog
+from rig.core.events import Event, EventKind, EventLog
 from rig.faults import DeviceFaultError
 from rig.interface import Block, ControlMode, Rig, Segment, open_rig
 from rig.runner import RunHooks
@@ -291,6 +291,8 @@ class RigWorker(_JobThread):
         self.store = store
         self.rig = rig if rig is not None else open_rig(config)
         self.state = WorkerState.IDLE
+        self.closing_reason: str | None = None  # set by shutdown(): the service is going away, and why
+        self.closed: Event | None = None  # shutdown()'s `closed` event, once published
         self._mode: dict[str, ControlMode] = {}
         self._live: dict[str, RunDocument] = {}
         self.start()
@@ -367,8 +369,9 @@ class RigWorker(_JobThread):
         return job
 
     def quick_stop(self, why: str = "quick stop") -> None:
-        """Stop everything now: the motor first, then the queue. Any state, any thread, never refused."""
-        self.rig.quick_stop()  # before any lock: the motor must not wait for bookkeeping
+        """Stop everything now: the motor first, then the queue. Any state, any thread, never refused.
+        A run it ends is `aborted: <why>`."""
+        self.rig.quick_stop(why)  # before any lock: the motor must not wait for bookkeeping
         with self._lock:
             cancelled = list(self._queue)
             for job in cancelled:
@@ -377,10 +380,29 @@ class RigWorker(_JobThread):
                 self._current.abort_requested.set()
         for job in cancelled:
             self._publish_job(job)
-        self._stop_motion(why)
+        self._stop_motion(why, why)
 
-    def _stop_motion(self, why: str) -> None:
-        self.rig.quick_stop()
+    def shutdown(self, why: str, wait_s: float = 0.0) -> None:
+        """The service is going away (a signal): stop for good. The motor first, then the queue; no job is
+        accepted from now on; then wait up to `wait_s` for the job playing to end (its run sealed
+        `aborted: <why>`) and publish the `closed` event that ends every event stream, saying why.
+        Safe from any thread, and to call again (the first `why` stays)."""
+        self.rig.quick_stop(why)
+        with self._lock:
+            first = self.closing_reason is None
+            if first:
+                self.closing_reason = why
+                self._closing = True  # _enqueue refuses from now on; the thread ends after its job
+                self._wake.notify_all()
+        self.quick_stop(why)
+        current = self._current
+        if current is not None:
+            current.done.wait(wait_s)
+        if first:
+            self.closed = self.events.publish(EventKind.CLOSED, {"why": why})
+
+    def _stop_motion(self, why: str, rig_why: str | None = None) -> None:
+        self.rig.quick_stop(rig_why)
         self.events.publish(EventKind.ALARM, {"alarm": "quick_stop", "why": why})
         with self._lock:
             running = self._current is not None
@@ -397,11 +419,12 @@ class RigWorker(_JobThread):
                 self._wake.notify_all()
 
     def close(self, timeout_s: float = 30.0) -> None:
-        """Stop, finish, release the rig. Safe to call twice."""
+        """Stop, finish (waiting up to `timeout_s` for the job playing to seal its run), release the rig.
+        Safe to call twice."""
         if self.state == WorkerState.CLOSED:
             return
         if self.busy:
-            self.quick_stop("worker closing")
+            self.quick_stop(self.closing_reason or "quick stop: the rig worker is closing")
         self._close_thread(timeout_s)
         self.rig.close()
         with self._lock:
@@ -463,6 +486,10 @@ class RigWorker(_JobThread):
 
     def _hooks(self, job: Job, first_run_id: str) -> RunHooks:
         def started(run_id: str) -> None:
+            if job.abort_requested.is_set():
+                # A stop that came between the campaign's check and this run's enable() was cleared by
+                # enable(): the drive is powered now, so stop it again before a cycle is played.
+                self.rig.quick_stop(self.closing_reason)
             if run_id not in job.runs:
                 job.runs.append(run_id)
             entry = self.store.get(run_id)
