@@ -454,9 +454,9 @@ def test_results_render_in_the_page_at_every_width(browser: object, service: Ser
     assert float(sigma) > 0, sigma
     expect(table.locator("tr[data-param=K_s] td").nth(1)).to_have_text("not determined")
     download = page.locator("[data-testid=model-download]")
-    if download.count():
-        name = download.get_attribute("download") or ""
-        assert short in name and str(fit_id) in name and "seed" not in name, name
+    expect(download).to_be_visible()
+    name = download.get_attribute("download") or ""
+    assert short in name and str(fit_id) in name and "seed" not in name, name
     report = page.locator("#job-results [data-testid=report]")
     expect(report.locator("table").first).to_be_visible(timeout=10_000)  # rendered Markdown, not text
     expect(report).not_to_contain_text("|---")

@@ -663,6 +663,8 @@ async function startAnalysis(event) {
 
 async function main() {
   $("stop").addEventListener("click", () => stopRig(0));
+  const bar = $("bar");
+  new ResizeObserver(() => document.documentElement.style.setProperty("--bar-h", `${bar.offsetHeight}px`)).observe(bar);
   $("login-form").addEventListener("submit", login);
   $("logout").addEventListener("click", logout);
   $("start-form").noValidate = true; // the service validates; its problem details are shown by the form

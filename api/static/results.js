@@ -401,7 +401,7 @@ function parameterTable(parameters) {
     el(
       "table",
       { dataset: { testid: "fit-parameters" } },
-      el("thead", {}, el("tr", {}, ["parameter", "estimate", "σ (1 σ)", "start", "stage", "note"].map((h) => el("th", { scope: "col" }, h)))),
+      el("thead", {}, el("tr", {}, ["parameter", "estimate", "σ", "start", "stage", "note"].map((h) => el("th", { scope: "col" }, h)))),
       el("tbody", {}, rows),
     ),
   );
@@ -442,7 +442,7 @@ export async function renderJobResults(job) {
         "figure",
         { class: "wide" },
         el("figcaption", {}, "parameters"),
-        Number.isFinite(e.before) && Number.isFinite(e.after) ? el("p", {}, `${e.metric}: ${fmt(e.before)} → ${fmt(e.after)}`) : el("p", { class: "summary" }, `${e.metric || "fit error"}: not computed (no pulse/step/sine run among the data)`),
+        Number.isFinite(e.before) && Number.isFinite(e.after) ? el("p", {}, `${e.metric}: ${fmt(e.before)} → ${fmt(e.after)}`) : el("p", { class: "summary" }, `${e.metric || "fit error"}: not computed for these runs`),
         parameterTable(result.parameters || {}),
       ),
     );
