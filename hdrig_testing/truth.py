@@ -658,6 +658,9 @@ _add(
         _lv_metric,
         rel_tol=0.02,
         reason="plant law at the sweep's centre (as the speed sweep's Coulomb level, issue 30: 2 %)",
+        open_issue="issue 30 item 2: each speed is averaged at another place of the stroke (+2.5 %); H4's"
+        " same-place sweep (WIP 5b73f47, not on main) left the windows where the load sticks in the level"
+        " (−2 %)",
     ),
     Check(
         "friction_per_load_nm_per_nm",
