@@ -258,6 +258,8 @@ def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, s
     page: Page = browser.new_page(viewport={"width": 1280, "height": 900})
     page_errors: list[str] = []
     page.on("pageerror", lambda error: page_errors.append(str(error)))
+    # The service's Content-Security-Policy (own scripts and styles only) refuses nothing the page does.
+    page.on("console", lambda m: "Content Security Policy" in m.text and page_errors.append(m.text))
 
     # Before login: the login form, and the Stop button already on screen.
     page.goto(service.url + "/")
@@ -400,6 +402,8 @@ def test_results_render_in_the_page_at_every_width(browser: object, service: Ser
     page = browser.new_page(viewport={"width": 1280, "height": 900})
     page_errors: list[str] = []
     page.on("pageerror", lambda error: page_errors.append(str(error)))
+    # The service's Content-Security-Policy (own scripts and styles only) refuses nothing the page does.
+    page.on("console", lambda m: "Content Security Policy" in m.text and page_errors.append(m.text))
     _login(page, service)
 
     # A fit and a gap analysis of the short sweep, started from the page; they run while we look.
