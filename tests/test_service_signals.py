@@ -243,3 +243,59 @@ def test_stop_is_honoured_while_the_thread_pool_is_saturated(tmp_path: Path) -> 
     free_s, saturated_s, entry = asyncio.run(scenario())
     assert entry["status"] == RunStatus.ABORTED and entry["reason"] == "aborted: quick stop by op", entry
     print(f"stop: {free_s * 1e3:.1f} ms with a free pool, {saturated_s * 1e3:.1f} ms with it saturated")
+
+
+# ---- the page's way of following a run: chromium's EventSource ------------------------------------------
+
+CHROMIUM = os.environ.get("HDRIG_CHROMIUM", "/usr/bin/chromium")
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"]  # as tests/test_browser.py
+FOLLOW = """([runId, key]) => fetch("/api/v1/session", {
+    method: "POST", headers: {"Content-Type": "application/json"}, body: JSON.stringify({key}),
+}).then((answer) => {
+    if (!answer.ok) throw new Error(`login: ${answer.status}`);
+    window.got = [];
+    const source = new EventSource(`/api/v1/runs/${runId}/events`);  // as api/static/app.js follows a run
+    for (const kind of ["samples", "alarm", "run", "closed"]) {
+        source.addEventListener(kind, (m) => {
+            window.got.push([kind, JSON.parse(m.data)]);
+            if (kind === "closed") source.close();
+        });
+    }
+})"""
+
+
+def test_a_browser_following_the_run_does_not_hold_the_service_and_is_told_why(tmp_path: Path) -> None:
+    from playwright.sync_api import sync_playwright
+
+    home, log = tmp_path / "home", tmp_path / "serve.log"
+    proc, base, key = serve(home, log)
+    try:
+        auth = {"Authorization": f"Bearer {key}"}
+        sweep = {"experiment": "speed-sweep", "params": {"speeds_rad_s": [0.5, 1.0, 2.0], "hold_s": 3.0}}
+        run_id = httpx.post(f"{base}{API}/runs", json=sweep, headers=auth, timeout=30).json()["id"]
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+            page = browser.new_page()
+            page.goto(f"{base}{API}/health")  # this origin, without the page's own scripts
+            page.evaluate(FOLLOW, [run_id, key])
+            page.wait_for_function(
+                "() => window.got.some(([kind]) => kind === 'samples')", timeout=START_S * 1000
+            )
+            sent = time.monotonic()
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(OLD_CODE_WAIT_S)
+            except subprocess.TimeoutExpired:
+                pytest.fail(f"hdrig serve still up {OLD_CODE_WAIT_S} s after SIGTERM (a browser following)")
+            exited_after_s = time.monotonic() - sent
+            got: list[tuple[str, dict[str, Any]]] = page.evaluate("() => window.got")
+            browser.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(30)
+
+    assert exited_after_s <= EXIT_S + EXIT_SLACK_S, f"exited {exited_after_s:.2f} s after SIGTERM"
+    assert RunStore(home).get(run_id)["status"] == RunStatus.ABORTED
+    kind, data = got[-1]
+    assert kind == "closed" and "SIGTERM" in data["why"], got[-3:]
