@@ -38,10 +38,12 @@ def pulse(tmp_path_factory: pytest.TempPathFactory) -> tuple[RunOutcome, Run]:
 def _static_level_nm(model: HarmonicDriveModel, theta: float) -> float:
     """f_sm of docs/MODEL.md's article law at motor position θ [N·m]."""
     f = model.motor_friction
+    assert f.s1 is not None and f.s2 is not None and f.s3 is not None and f.a is not None and f.b is not None
+    assert f.k_v is not None and f.v_c is not None and f.static_factor is not None
+    a, b = f.a, f.b
     coulomb = f.s1 * theta**2 + f.s2 * theta + f.s3
-    periodic = f.a[0] / 2 + sum(
-        f.a[n] * math.cos(n * theta) + f.b[n - 1] * math.sin(n * theta) for n in range(1, len(f.a))
-    )
+    harmonics = (a[n] * math.cos(n * theta) + b[n - 1] * math.sin(n * theta) for n in range(1, len(a)))
+    periodic = a[0] / 2 + sum(harmonics)
     return f.static_factor * (coulomb * (1 - f.k_v * f.v_c) + periodic)
 
 
