@@ -181,6 +181,11 @@ def browser() -> Iterator[object]:
             chromium.close()
 
 
+def _csp_refusal(text: str, errors: list[str]) -> None:
+    if "Content Security Policy" in text:
+        errors.append(text)
+
+
 def _login(page: Any, service: Service) -> None:
     page.goto(service.url + "/")
     page.fill("#login-key", service.key)
@@ -259,7 +264,7 @@ def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, s
     page_errors: list[str] = []
     page.on("pageerror", lambda error: page_errors.append(str(error)))
     # The service's Content-Security-Policy (own scripts and styles only) refuses nothing the page does.
-    page.on("console", lambda m: "Content Security Policy" in m.text and page_errors.append(m.text))
+    page.on("console", lambda message: _csp_refusal(message.text, page_errors))
 
     # Before login: the login form, and the Stop button already on screen.
     page.goto(service.url + "/")
@@ -403,7 +408,7 @@ def test_results_render_in_the_page_at_every_width(browser: object, service: Ser
     page_errors: list[str] = []
     page.on("pageerror", lambda error: page_errors.append(str(error)))
     # The service's Content-Security-Policy (own scripts and styles only) refuses nothing the page does.
-    page.on("console", lambda m: "Content Security Policy" in m.text and page_errors.append(m.text))
+    page.on("console", lambda message: _csp_refusal(message.text, page_errors))
     _login(page, service)
 
     # A fit and a gap analysis of the short sweep, started from the page; they run while we look.
