@@ -49,8 +49,11 @@ FLAG_MIN_PERCENT = 2.0
 """An error is flagged as the model's when above its noise floor and above this [%]."""
 FLAG_MIN_DEG = 2.0
 """The same for the Bode phase's RMS error [°]."""
-OMEGA_FIT_SAMPLES = 8
-"""First samples of θ_l a quadratic is fitted to for the load's starting speed (not measured)."""
+OMEGA_FIT_SAMPLES = 16
+OMEGA_FIT_DEGREE = 4
+"""The starting speeds: slopes at t = 0 of polynomials of this degree through the first samples of θ_m and
+θ_l (the load's speed is not measured; the drive's filtered speed lags); a quadratic over 8 samples was
+biased ~2 % by the curvature of an 11 Hz ring."""
 BODE_TABLE = "frf_closed_loop"
 BODE_MAX_HZ = 10.0
 
@@ -159,18 +162,25 @@ class StartState:
 
 
 def start_state(run: Run) -> StartState:
-    """The state at the run's first sample. Positions and the motor's speed are measured; the load's speed
-    is the slope at t = 0 of a quadratic through the first OMEGA_FIT_SAMPLES of θ_l. The load angle is
+    """The state at the run's first sample. Positions are measured; the speeds are the slopes at t = 0 of
+    polynomials through the first samples of θ_m and θ_l (OMEGA_FIT_*). The load angle is
     taken as measured only from a run our simulated plant recorded (its sensor shares the plant's zero,
     so θ_l − r·θ_m is the twist plus the kinematic error); elsewhere the spring starts relaxed. Stuck or
     sliding follows from the speeds (the plant's stick band). Bristle states are not observed: zero."""
-    theta_m, omega_m = float(run["theta_m"][0]), float(run["omega_m"][0])
     time_s = float(run.meta.get("rig_time_origin_s", 0.0))
-    if run.meta.get("source") != "sim" or len(run) < OMEGA_FIT_SAMPLES:
-        return StartState(theta_m, omega_m, None, None, time_s)
+    if len(run) < OMEGA_FIT_SAMPLES:
+        return StartState(float(run["theta_m"][0]), float(run["omega_m"][0]), None, None, time_s)
     t_s = run.t[:OMEGA_FIT_SAMPLES] - run.t[0]
-    slope = np.polyfit(t_s, run["theta_l"][:OMEGA_FIT_SAMPLES], 2)[1]
-    return StartState(theta_m, omega_m, float(run["theta_l"][0]), float(slope), time_s)
+
+    def start(name: str) -> tuple[float, float]:
+        coef = np.polyfit(t_s, run[name][:OMEGA_FIT_SAMPLES], OMEGA_FIT_DEGREE)
+        return float(run[name][0]), float(coef[-2])
+
+    theta_m, omega_m = start("theta_m")
+    if run.meta.get("source") != "sim":
+        return StartState(theta_m, omega_m, None, None, time_s)
+    theta_l, omega_l = start("theta_l")
+    return StartState(theta_m, omega_m, theta_l, omega_l, time_s)
 
 
 def _replay_experiment(
