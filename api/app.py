@@ -88,7 +88,7 @@ MEDIA_TYPES = {
 
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     status: {"model": Problem, "description": problems.TITLES[status]}
-    for status in (400, 401, 403, 404, 409, 422)
+    for status in (400, 401, 403, 404, 409, 413, 415, 422, 429)  # 413/415/429: api.guard, any route
 }
 
 Viewer = Annotated[Principal, Depends(auth.viewer)]

@@ -30,6 +30,7 @@ LOGIN_FAILURES_MAX = 10
 """Failed key checks (POST /session, or a bearer key that is unknown or revoked) a client may make per
 LOGIN_WINDOW_S before its key checks are answered 429."""
 LOGIN_WINDOW_S = 60.0
+LOGIN_BUCKETS_MAX = 10_000  # (client, key id) pairs remembered at once; the oldest go first
 SESSION_PATH = "/api/v1/session"
 CSP = (
     "default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:;"
@@ -53,17 +54,39 @@ def _is_json(content_type: bytes) -> bool:
     return media == b"application/json" or (media.startswith(b"application/") and media.endswith(b"+json"))
 
 
+def key_bucket(token: str) -> str:
+    """What failures are counted under, beside the client's address: the key id a key presents (the part
+    before its '.'), or '' for anything else. So failures against one key's id hold back further tries at
+    that key, and a flood of made-up keys shares one bucket, without locking out a client whose own key
+    is good (on loopback every client has the same address)."""
+    head, dot, _ = token.partition(".")
+    return head[:32] if dot and head.isalnum() else ""
+
+
+def _bearer(headers: dict[str, bytes]) -> str:
+    scheme, _, token = headers.get("authorization", b"").decode("latin-1").partition(" ")
+    return token.strip() if scheme.lower() == "bearer" else ""
+
+
+def _login_key(body: bytes) -> str:
+    try:
+        key = json.loads(body).get("key")
+    except (ValueError, AttributeError):
+        return ""
+    return key if isinstance(key, str) else ""
+
+
 @dataclass
 class LoginLimit:
-    """Failed key checks per client in a sliding window (thread-safe: routes run on a thread pool)."""
+    """Failed key checks per (client, key id) in a sliding window (thread-safe: routes run on threads)."""
 
     failures_max: int = LOGIN_FAILURES_MAX
     window_s: float = LOGIN_WINDOW_S
     clock: Callable[[], float] = time.monotonic
-    _failed: dict[str, deque[float]] = field(default_factory=lambda: defaultdict(deque))
+    _failed: dict[tuple[str, str], deque[float]] = field(default_factory=lambda: defaultdict(deque))
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def _trim(self, client: str, now: float) -> deque[float]:
+    def _trim(self, client: tuple[str, str], now: float) -> deque[float]:
         failed = self._failed[client]
         while failed and failed[0] <= now - self.window_s:
             failed.popleft()
@@ -72,7 +95,7 @@ class LoginLimit:
             return deque()
         return failed
 
-    def retry_after_s(self, client: str) -> int | None:
+    def retry_after_s(self, client: tuple[str, str]) -> int | None:
         """Seconds until `client` may try a key again (None: now)."""
         with self._lock:
             now = self.clock()
@@ -81,8 +104,10 @@ class LoginLimit:
                 return None
             return max(1, int(failed[-self.failures_max] + self.window_s - now + 0.999))
 
-    def failed(self, client: str) -> None:
+    def failed(self, client: tuple[str, str]) -> None:
         with self._lock:
+            if client not in self._failed and len(self._failed) >= LOGIN_BUCKETS_MAX:
+                del self._failed[next(iter(self._failed))]  # the longest remembered
             self._failed[client].append(self.clock())
 
 
@@ -129,18 +154,9 @@ class Guard:
             return
 
         headers = {k.decode("latin-1").lower(): v for k, v in scope.get("headers", [])}
-        client = (scope.get("client") or ("?", 0))[0]
-        checks_key = "authorization" in headers or (path == SESSION_PATH and scope["method"] == "POST")
-        if checks_key:
-            wait_s = self.limit.retry_after_s(client)
-            if wait_s is not None:
-                await _problem(
-                    send,
-                    429,
-                    f"too many failed key checks from this client; try again in {wait_s} s",
-                    {"Retry-After": str(wait_s)},
-                )
-                return
+        address = (scope.get("client") or ("?", 0))[0]
+        login = path == SESSION_PATH and scope["method"] == "POST"
+        checks_key = "authorization" in headers or login
 
         length = headers.get("content-length")
         if length is not None:
@@ -183,6 +199,21 @@ class Guard:
                 return await receive()  # after the body: the disconnect, when it comes
 
             receive = replay
+        else:
+            body = b""
+
+        client = (address, "")
+        if checks_key:  # which key is tried: the login's in its body, else the bearer's
+            client = (address, key_bucket(_login_key(body) if login else _bearer(headers)))
+            wait_s = self.limit.retry_after_s(client)
+            if wait_s is not None:
+                await _problem(
+                    send,
+                    429,
+                    f"too many failed key checks from this client; try again in {wait_s} s",
+                    {"Retry-After": str(wait_s)},
+                )
+                return
 
         html = not path.startswith("/api/") and not path.startswith(NO_CSP_PATHS)
 

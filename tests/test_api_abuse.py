@@ -203,21 +203,29 @@ def test_control_characters_are_400_and_never_reach_the_log(
 # ---- failed logins, the page's headers --------------------------------------------------------------------
 
 
-def test_failed_key_checks_are_limited_per_client(service: Client) -> None:
+def test_failed_key_checks_are_limited_per_client_and_key(service: Client) -> None:
     app = service.client.app
     limit: guard.LoginLimit = app.state.login_limit  # type: ignore[attr-defined]
     now = [1000.0]
     limit.clock = lambda: now[0]
+    operator = service.keys["operator"]
+    guessed = operator.partition(".")[0] + ".not-the-secret"  # the key's public id, a wrong secret
     for _ in range(limit.failures_max // 2):
-        problem(service.client.post(f"{API}/session", json={"key": "wrong"}), 401)
+        problem(service.client.post(f"{API}/session", json={"key": guessed}), 401)
     for _ in range(limit.failures_max - limit.failures_max // 2):
-        problem(service.client.get(f"{API}/runs", headers={"Authorization": "Bearer wrong"}), 401)
-    refused = service.client.post(f"{API}/session", json={"key": service.keys["operator"]})
+        problem(service.client.get(f"{API}/runs", headers={"Authorization": f"Bearer {guessed}"}), 401)
+    refused = service.client.post(f"{API}/session", json={"key": operator})  # that key, even right
     problem(refused, 429)
     assert 0 < int(refused.headers["Retry-After"]) <= limit.window_s
-    problem(service.client.get(f"{API}/runs", headers={"Authorization": "Bearer wrong"}), 429)
+    problem(service.client.get(f"{API}/runs", headers={"Authorization": f"Bearer {operator}"}), 429)
+    # Another key from the same address is not held back (on loopback every client shares one address).
+    assert service.client.get(f"{API}/runs", headers=service.auth("viewer")).status_code == 200
+    # Made-up keys share one bucket: after as many failures they are refused too.
+    for _ in range(limit.failures_max):
+        problem(service.client.post(f"{API}/session", json={"key": "made-up"}), 401)
+    problem(service.client.post(f"{API}/session", json={"key": "made-up-too"}), 429)
     now[0] += limit.window_s + 1  # the window has passed: keys are checked again
-    assert service.client.post(f"{API}/session", json={"key": service.keys["operator"]}).status_code == 200
+    assert service.client.post(f"{API}/session", json={"key": operator}).status_code == 200
 
 
 @pytest.mark.parametrize("path", ["/", "/static/app.js"])
