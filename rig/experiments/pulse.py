@@ -95,9 +95,13 @@ def pulse_labels(index: int) -> tuple[str, str]:
     return f"pulse{index + 1}{sign}", f"rest{index + 1}"
 
 
+STAIR_PREFIX = "stair"
+"""Every staircase segment's label starts with it (and no other's)."""
+
+
 def stair_labels(level: int, sign: str) -> tuple[str, str]:
     """Labels of staircase level `level` (from 0) in direction sign ("+" or "-") and the rest after it."""
-    return f"stair{level + 1}{sign}", f"stair-rest{level + 1}{sign}"
+    return f"{STAIR_PREFIX}{level + 1}{sign}", f"{STAIR_PREFIX}-rest{level + 1}{sign}"
 
 
 def encoder_speed(theta: np.ndarray, period_s: float) -> np.ndarray:

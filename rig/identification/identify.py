@@ -19,6 +19,8 @@ from model.fit.parameters import get_values, with_values
 from model.fit.trajectory import CHANNELS, TrajectoryFit, TrajectoryProblem, fit_problem
 from model.params import HarmonicDriveModel, save_model
 from model.run import Run
+from rig.experiments.base import segments_of
+from rig.experiments.pulse import STAIR_PREFIX
 from rig.identification.column_stage import axis_figures, plan_for_plain_runs, seeded_model
 from rig.identification.staged import REQUIRED_META, staged_estimates
 from rig.identification.validation import ValidationReport, validate
@@ -72,7 +74,21 @@ class Identification:
 
 
 def _joint_runs(runs: list[Run]) -> list[Run]:
-    return [r for r in runs if r.meta.get("experiment") in JOINT_EXPERIMENTS and r.input_column is not None]
+    return [
+        _without_staircase(r)
+        for r in runs
+        if r.meta.get("experiment") in JOINT_EXPERIMENTS and r.input_column is not None
+    ]
+
+
+def _without_staircase(run: Run) -> Run:
+    """A pulse run up to its breakaway staircase: the stairs barely move the motor (the breakaway stage's
+    matter, not the trajectories'), and the joint refinement keeps the pulse rows it always had."""
+    stairs = segments_of(run, STAIR_PREFIX) if run.meta.get("experiment") == "pulse" else []
+    if not stairs:
+        return run
+    stop = min(int(seg["start"]) for seg in stairs)
+    return Run({name: values[:stop] for name, values in run.columns.items()}, run.meta)
 
 
 def carries_stage_metadata(run: Run) -> bool:
