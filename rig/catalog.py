@@ -349,7 +349,7 @@ def own_catalog_file(path: str | bytes | os.PathLike[Any]) -> str | None:
     for candidate in candidates:
         identity = _identity(candidate)
         registered = _own_files.get(identity) if identity is not None else None
-        if registered is None:
+        if identity is None or registered is None:
             continue
         if _identity(registered) != identity:  # that catalog is gone and its inode reused: not ours
             _own_files.pop(identity, None)
