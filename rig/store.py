@@ -31,6 +31,7 @@ are read from the row groups that hold them only.
 
 from __future__ import annotations
 
+import errno
 import getpass
 import json
 import math
@@ -342,6 +343,8 @@ class RunStore:
         try:
             # The store is this user's: its folders 0700 (a run's files, the keys' hashes and the audit
             # log are nobody else's to read), the catalog's files 0600 (`Catalog`).
+            if self.home.exists() and not self.home.is_dir():
+                raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR))
             self.home.mkdir(mode=0o700, parents=True, exist_ok=True)
             (self.home / "runs").mkdir(mode=0o700, exist_ok=True)
             for folder in (self.home, self.home / "runs"):

@@ -83,8 +83,8 @@ def test_a_catalog_from_before_migrations_is_upgraded_without_loss(tmp_path: Pat
     ]
     assert [c["index"] for c in store.checkpoints(unit="HD25-0007")] == [0]
     assert [k.name for k in access.list_keys(store)] == ["lab"]
-    # the rows' order kept (the key made first is in the log too)
-    assert [e.action for e in access.audit_log(store)] == ["key.create", "start", "abort", "stop"]
+    # the rows' order kept (the legacy key was written straight into the table: no line of its own)
+    assert [e.action for e in access.audit_log(store)] == ["start", "abort", "stop"]
     with sqlite3.connect(tmp_path / "home" / "catalog.sqlite") as db:
         assert db.execute("SELECT version_num FROM alembic_version").fetchall() == [(head_revision(),)]
         assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"

@@ -357,6 +357,6 @@ def test_ctrl_c_quick_stops_and_leaves_the_run_aborted_with_its_data(tmp_path: P
 
     assert child.returncode == 130, stderr
     (entry,) = runs_json(home)
-    assert entry["status"] == "aborted" and entry["reason"] == "aborted: quick stop requested"
+    assert entry["status"] == "aborted" and entry["reason"] == "aborted: Ctrl-C"
     assert entry["samples"] >= flushed and len(RunStore(home).read(entry["id"])) == entry["samples"]
     assert f"run {entry['id']} kept" in stderr

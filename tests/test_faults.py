@@ -185,7 +185,8 @@ def test_sigterm_and_sighup_quick_stop_the_drive_then_keep_the_run_aborted(
     no_traceback(stderr)
     assert child.returncode == status, stderr
     (entry,) = RunStore(home).list_runs()
-    assert (entry["status"], entry["reason"]) == ("aborted", "aborted: quick stop requested")
+    # The reason names what stopped it (the run's reader can tell a signal from an operator's stop).
+    assert (entry["status"], entry["reason"]) == ("aborted", f"aborted: {sig.name}")
     assert entry["samples"] >= flushed and len(RunStore(home).read(entry["id"])) == entry["samples"]
     assert stopped_in_the_can_log(Path(entry["path"]).parent)
 
