@@ -104,6 +104,11 @@ class LoginLimit:
                 return None
             return max(1, int(failed[-self.failures_max] + self.window_s - now + 0.999))
 
+    def forget(self) -> None:
+        """Every failure forgotten (a fresh window for every client)."""
+        with self._lock:
+            self._failed.clear()
+
     def failed(self, client: tuple[str, str]) -> None:
         with self._lock:
             if client not in self._failed and len(self._failed) >= LOGIN_BUCKETS_MAX:

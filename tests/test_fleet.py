@@ -167,11 +167,12 @@ def test_two_services_one_postgres_catalog_s3_data_and_a_batch_fit_of_their_unit
     assert all(u.status == "complete" and len(u.runs) == 2 for u in report.units)
     # The Coulomb level s3 from the speed sweep: bench B's gear is 1.4× the seed's (5 %: the sweep's two
     # speeds and the velocity loop's ripple), flagged against the fleet; bench A's two gears run the seed
-    # plant, where the fit keeps the seed's value as no worse on held-out windows (so exactly it).
+    # plant: each within 2 % of the seed's value (their sensor noise differs, so may their last digits).
     s3_of = {u.unit: u.parameters["s3"].estimate for u in report.units}
     assert s3_of["HD25-0003"] == pytest.approx(seed.motor_friction.s3 * FRICTION_FACTOR_B, rel=0.05)
     assert report.units[2].parameters["s3"].determined
-    assert s3_of["HD25-0001"] == s3_of["HD25-0002"] == pytest.approx(seed.motor_friction.s3, rel=0.02)
+    for unit in ("HD25-0001", "HD25-0002"):
+        assert s3_of[unit] == pytest.approx(seed.motor_friction.s3, rel=0.02), unit
     assert report.spread["s3"].outliers == ["HD25-0003"]
     assert Path(report.report or "").read_text().count("**yes**") >= 1
     stored = fleet.unit_results(store, "HD25-0003")

@@ -77,18 +77,20 @@ def test_the_campaign_rings_before_it_settles(played: tuple[dict[str, Run], dict
 
 
 @pytest.mark.parametrize(
-    ("name", "keys"),
+    ("name", "keys", "rel"),
     [
-        ("sine", ("rms_error_rad", "gain", "phase_lag_deg")),
-        ("step", ("settling_s_1", "rise_s", "overshoot_pct")),
+        ("sine", ("rms_error_rad", "gain", "phase_lag_deg"), 0.01),
+        ("step", ("settling_s_1", "rise_s", "overshoot_pct"), 0.02),
     ],
 )
 def test_campaign_metrics_equal_the_standalone_ones(
-    played: tuple[dict[str, Run], dict[str, Run]], name: str, keys: tuple[str, ...]
+    played: tuple[dict[str, Run], dict[str, Run]], name: str, keys: tuple[str, ...], rel: float
 ) -> None:
-    """Within 1 %: what is left of the start's difference — the approach ends within the position loop's
-    friction-stalled error of the turn (~1 mrad at the motor) and the load keeps the twist its static
-    friction holds (≤ f_sl/K_s = 0.35 mrad); sensor noise alone moves these figures by < 0.01 %. Before
+    """Within 1 % (the sine) or 2 % (the step): what is left of the start's difference — the approach ends
+    within the position loop's friction-stalled error of the turn (measured 4 mrad at the motor before
+    the campaign's step, where the kinematic error, A·k = 0.05, puts the load 0.15 mrad off the standalone
+    start: the step's overshoot moved 1.4 %) and the load keeps the twist its static friction holds
+    (≤ f_sl/K_s = 0.35 mrad); sensor noise alone moves these figures by < 0.01 %. Before
     the settle and the approach, the campaign's sine RMS was 2.7× the standalone one. (The step back's
     settling time is left out: its response peaks within 0.2 mrad of the 20 mrad band's edge, so that
     twist moves it by a lobe of the load mode, 0.42 s or 0.48 s; the sine's maximum error, one sample's
@@ -96,4 +98,4 @@ def test_campaign_metrics_equal_the_standalone_ones(
     campaign, alone = played
     got, want = _metrics(campaign[name]), _metrics(alone[name])
     for key in keys:
-        assert got[key] == pytest.approx(want[key], rel=0.01), f"{name}.{key}: {got[key]}, alone {want[key]}"
+        assert got[key] == pytest.approx(want[key], rel=rel), f"{name}.{key}: {got[key]}, alone {want[key]}"
