@@ -63,7 +63,8 @@ class KeyScenarios(schema.as_state_machine()):  # type: ignore[misc]
     def teardown(self) -> None:
         live_admins = [k for k in access.list_keys(STORE) if k.role == "admin" and k.revoked is None]
         assert live_admins, "no live admin key is left"
-        if "stateful-admin" in {k.name for k in live_admins}:  # a scenario may revoke it once another admin exists
+        # A scenario may revoke its own key once it has made another admin.
+        if "stateful-admin" in {k.name for k in live_admins}:
             still = TestClient(APP).get("/api/v1/keys", headers={"Authorization": f"Bearer {ADMIN}"})
             assert still.status_code == 200, f"a live admin key is refused: {still.status_code} {still.text}"
 
