@@ -28,7 +28,7 @@ from rig.experiments import experiment_named
 from rig.experiments.base import Experiment, ExperimentParams, Observer, Results, RigContext, context_from_run
 from rig.experiments.tracking import ZERO_WINDOW_S
 from rig.faults import DeviceFaultError
-from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, open_rig
+from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, SegmentResult, open_rig
 from rig.runfile import json_text
 from rig.status import RunStatus
 from rig.store import PART_ROWS_MAX, AnalysisState, RunStore, RunWriter
@@ -44,7 +44,26 @@ REST_WINDOW_S = ZERO_WINDOW_S
 """The output is at rest when its motion over the last such window is at its noise; the same window the
 tracking experiments average for their zero, so the zero is taken at rest."""
 APPROACH_S = 0.5
-"""Time of the move to a whole motor turn before an experiment that starts on one (`start_on_turn`) [s]."""
+"""Shortest time of the move to the stroke's origin before an experiment that starts there
+(`start_on_turn`) [s]."""
+APPROACH_SPEED_RAD_S = 10.0
+"""Top motor speed of the approach's move; a longer move takes longer [rad/s]."""
+APPROACH_HOLD_S = 0.05
+"""After the move, the approach holds the turn in position mode in stretches of this length [s] ..."""
+APPROACH_HOLD_MAX_S = 4.0
+"""... until the motor is within APPROACH_COUNTS encoder counts of the turn, at most this long [s]: the
+position loop's P stalls on the motor's friction a few mrad off (4 mrad on the seed), and the speed loop's
+integral, fed by that error, takes it the rest of the way; a motor still off then is said so in the run's
+metadata (`approach`) and the program starts anyway."""
+UNLOAD_S = 0.2
+"""Time of the speed set-point that unloads the speed loop's integral after the approach [s]."""
+UNLOAD_WINDOW_S = 0.02
+"""The motor is held still when its encoder did not move over this last stretch of the hold [s]."""
+UNLOAD_SPEED_MAX_RAD_S = 1.0
+"""Largest motor speed the unloading asks [rad/s]."""
+APPROACH_COUNTS = 1.0
+"""The turn is reached within this many motor encoder counts (what the encoder resolves; 2 µrad
+when it is ideal) [counts]."""
 REST_NOISE_FACTOR = 3.0
 """At rest: θ_l's spread over the window at most this many times its noise (1 σ each); pure noise has a
 spread of 1 σ, a ring of amplitude a a spread of a/√2."""
@@ -172,30 +191,129 @@ def _settle(
     return Settled(theta_m, cycles / rate_hz, _at_rest(motion, noise), motion, noise, aborted)
 
 
-def _approach_turn(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> str | None:
-    """Move the motor to its nearest whole turn and hold (`approach`), before the settle: an experiment
-    whose metrics depend on the angle it starts at (through the kinematic error and the friction's
-    ripple, both periodic in whole turns of the motor) then starts in the same place whatever ran
-    before it. The abort reason, if it tripped."""
-    rate_hz = rig.config.sample_rate_hz
-    here: dict[str, float] = {}
+@dataclass(frozen=True)
+class Approached:
+    """How the approach to the stroke's origin ended: the turn aimed at, how far off the motor stopped,
+    how long the hold after the move took, whether it came within APPROACH_COUNTS encoder counts, and the
+    current the speed loop's integral held before it was unloaded."""
 
-    def keep(block: dict[str, np.ndarray]) -> None:
-        here["theta_m"] = float(block["theta_m"][-1])
-        sink(block)
+    target_rad: float
+    error_rad: float
+    hold_s: float
+    within: bool
+    tolerance_rad: float
+    held_current_a: float = 0.0
+    aborted: str | None = None
+
+    def meta(self) -> dict[str, Any]:
+        return {
+            "target_rad": self.target_rad,
+            "error_rad": self.error_rad,
+            "hold_s": self.hold_s,
+            "within": self.within,
+            "tolerance_rad": self.tolerance_rad,
+            "hold_max_s": APPROACH_HOLD_MAX_S,
+            "held_current_a": self.held_current_a,
+        }
+
+
+def approach_tolerance_rad(rig: Rig) -> float:
+    """How close to the turn the approach brings the motor [rad]: APPROACH_COUNTS encoder counts (an ideal
+    encoder: the load sensor's noise)."""
+    counts = rig.config.sensors.encoder_counts_per_rev
+    return APPROACH_COUNTS * 2 * np.pi / counts if counts else rig.config.sensors.load_sensor_noise_rad
+
+
+class _Tail:
+    """A sink that keeps the last samples of the motor's angle, speed and current command."""
+
+    def __init__(self, sink: Callable[[dict[str, np.ndarray]], None], length: int) -> None:
+        self.sink, self.length = sink, length
+        self.rows: dict[str, np.ndarray] = {name: np.empty(0) for name in ("theta_m", "omega_m", "i_cmd")}
+
+    def __call__(self, block: dict[str, np.ndarray]) -> None:
+        for name, kept in self.rows.items():
+            self.rows[name] = np.concatenate([kept, np.asarray(block[name], dtype=float)])[-self.length :]
+        self.sink(block)
+
+    @property
+    def theta_m(self) -> float:
+        return float(self.rows["theta_m"][-1]) if self.rows["theta_m"].size else float("nan")
+
+
+def _approach_turn(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> Approached:
+    """Move the motor to the stroke's origin, θ_m = 0 (a whole turn), and hold it there (`approach`),
+    before the settle: an experiment whose metrics depend on the angle it starts at then starts where a
+    freshly started rig does, whatever ran before it. Not only the turn's phase counts (the kinematic
+    error and the friction's ripple repeat every motor turn), also which turn: the friction's slow level
+    C(θ_m) is a polynomial over the stroke, and a step started one turn up (the nearest turn after the
+    campaign's earlier experiments) overshot 1.1 % more than one started at 0. The move is half a
+    cosine, at most APPROACH_SPEED_RAD_S; then the position loop holds the turn, in stretches of
+    APPROACH_HOLD_S, until the motor is within `approach_tolerance_rad` of it (at most
+    APPROACH_HOLD_MAX_S, what is left said in the run's metadata); then the current left in the speed
+    loop's integral is unloaded (`_unload_speed_integral`), so the program starts as on a freshly
+    enabled drive."""
+    rate_hz = rig.config.sample_rate_hz
+    tolerance = approach_tolerance_rad(rig)
+    tail = _Tail(sink, max(4, round(UNLOAD_WINDOW_S * rate_hz)))
+
+    def ended(target: float, hold_s: float, held_a: float, aborted: str | None) -> Approached:
+        error = tail.theta_m - target
+        return Approached(target, error, hold_s, bool(abs(error) <= tolerance), tolerance, held_a, aborted)
 
     hold = Segment(ControlMode.VELOCITY, np.zeros(max(1, round(SETTLE_S * rate_hz))), 0.0, "settle-before")
-    result = rig.run_segment(hold, keep)
-    if result.aborted is not None or "theta_m" not in here:
-        return result.aborted
-    start = here["theta_m"]
-    target = 2 * np.pi * round(start / (2 * np.pi))
-    # Half a cosine: starts and ends at rest, at most π/2·(π rad)/APPROACH_S ≈ 10 rad/s at the motor.
-    phase = np.linspace(0.0, np.pi, max(2, round(APPROACH_S * rate_hz)))
+    result = rig.run_segment(hold, tail)
+    if result.aborted is not None or not np.isfinite(tail.theta_m):
+        return ended(float("nan"), 0.0, 0.0, result.aborted)
+    start = tail.theta_m
+    target = 0.0
+    # Half a cosine: starts and ends at rest, at most APPROACH_SPEED_RAD_S at the motor.
+    duration_s = max(APPROACH_S, np.pi / 2 * abs(target - start) / APPROACH_SPEED_RAD_S)
+    phase = np.linspace(0.0, np.pi, max(2, round(duration_s * rate_hz)))
     path = start + (target - start) * (1.0 - np.cos(phase)) / 2
     move = Segment(ControlMode.POSITION, path, 0.0, "approach")
     rig.check_segment(move)
-    return rig.run_segment(move, sink).aborted
+    result = rig.run_segment(move, tail)
+    stretch = max(1, round(APPROACH_HOLD_S * rate_hz))
+    still = Segment(ControlMode.POSITION, np.full(stretch, target), 0.0, "approach")
+    cycles = 0
+    while (
+        result.aborted is None
+        and abs(tail.theta_m - target) > tolerance
+        and cycles + stretch <= round(APPROACH_HOLD_MAX_S * rate_hz)
+    ):
+        result = rig.run_segment(still, tail)
+        cycles += stretch
+    held_a = 0.0
+    if result.aborted is None:
+        held_a, result = _unload_speed_integral(rig, tail)
+    return ended(target, cycles / rate_hz, held_a, result.aborted)
+
+
+def _unload_speed_integral(rig: Rig, tail: _Tail) -> tuple[float, SegmentResult]:
+    """Bring the speed loop's integral back to zero while the motor's friction holds it still; the
+    current held before (0 if nothing was done) and how the segment ended.
+
+    The approach's hold leaves the motor stuck with the current that broke it free still in the
+    integral (near the static friction's level, 2.6 A on the seed), where a run on a freshly enabled
+    drive starts from 0; a step started so overshot 1 % more. At rest (ω = 0 over UNLOAD_WINDOW_S) that
+    integral is the commanded current i, and a speed set-point ω_ref moves it by K_i·∫ω_ref dt while the
+    motor stays stuck: a half-sine of speed against i, of area −i/K_i over UNLOAD_S, takes it to 0
+    (`unload`). The current then moves only towards zero, away from the breakaway level, so the motor
+    stays where it is; the speed asked is at most UNLOAD_SPEED_MAX_RAD_S (an integral beyond what that
+    unloads is unloaded that far)."""
+    control, rate_hz = rig.config.control, rig.config.sample_rate_hz
+    angle, current = tail.rows["theta_m"], tail.rows["i_cmd"]
+    if control.velocity_ki <= 0 or angle.size == 0 or np.ptp(angle) >= approach_tolerance_rad(rig):
+        return 0.0, SegmentResult(0)  # no integral, or the motor is not held still: nothing to unload
+    held_a = float(np.mean(current))
+    cycles = max(2, round(UNLOAD_S * rate_hz))
+    shape = np.sin(np.pi * (np.arange(cycles) + 0.5) / cycles)
+    area = -held_a / control.velocity_ki  # ∫ω_ref dt [rad]
+    peak = float(np.clip(area * rate_hz / np.sum(shape), -UNLOAD_SPEED_MAX_RAD_S, UNLOAD_SPEED_MAX_RAD_S))
+    unload = Segment(ControlMode.VELOCITY, peak * shape, 0.0, "unload")
+    rig.check_segment(unload)
+    return held_a, rig.run_segment(unload, tail)
 
 
 def _save_results(store: RunStore, run_id: str, results: Results) -> list[Path]:
@@ -389,9 +507,11 @@ def _record(
     """Settle, then play the program; (abort reason or None, the rig context the program ran in)."""
     config = rig.config
     if getattr(experiment, "start_on_turn", False):
-        aborted = _approach_turn(rig, sink)
-        if aborted is not None:
-            return aborted, RigContext(config, rig.gear_ratio, rig.torque_constant_nm_per_a, float("nan"))
+        approached = _approach_turn(rig, sink)
+        writer.update_meta({"approach": approached.meta()})
+        if approached.aborted is not None:
+            nan = float("nan")
+            return approached.aborted, RigContext(config, rig.gear_ratio, rig.torque_constant_nm_per_a, nan)
     settled = _settle(rig, sink, settle_s)
     theta_m0 = settled.theta_m_rad
     writer.flush_soon()  # each segment's rows on disk as it ends (a virtual-time run outpaces the interval)

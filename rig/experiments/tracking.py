@@ -193,7 +193,7 @@ STEP_QUANTITIES = ("settling_s", "rise_s", "overshoot_pct", "ss_error_rad")
 
 class Step(Experiment):
     name = "step"
-    start_on_turn: ClassVar[bool] = True  # the runner starts it on a whole motor turn (see module doc)
+    start_on_turn: ClassVar[bool] = True  # the runner starts it at θ_m = 0 (rig.runner._approach_turn)
     summary = "output position step (1 rad) and back; settling, rise, overshoot of the load angle"
     Params = StepParams
     needs = frozenset({ControlMode.POSITION})
@@ -308,7 +308,7 @@ def fit_phasor(t_s: np.ndarray, y: np.ndarray, freq_hz: float) -> complex:
 
 class Sine(Experiment):
     name = "sine"
-    start_on_turn: ClassVar[bool] = True  # the runner starts it on a whole motor turn (see module doc)
+    start_on_turn: ClassVar[bool] = True  # the runner starts it at θ_m = 0 (rig.runner._approach_turn)
     summary = "sinusoidal output position (0.5 Hz); RMS tracking error, gain and phase of the load angle"
     Params = SineParams
     needs = frozenset({ControlMode.POSITION})
@@ -481,7 +481,7 @@ def kinematic_error_fit(
 
 class Ramp(Experiment):
     name = "ramp"
-    start_on_turn: ClassVar[bool] = True  # the runner starts it on a whole motor turn (see module doc)
+    start_on_turn: ClassVar[bool] = True  # the runner starts it at θ_m = 0 (rig.runner._approach_turn)
     summary = (
         "slow output ramp up and down; ripple of the load angle, its kinematic error and stick-slip apart,"
         " stick phases"
