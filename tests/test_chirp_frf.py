@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from model.params import HarmonicDriveModel
+from model.params import HarmonicDriveModel, save_model
 from model.plant import Plant
 from rig.config import load_rig_config
 from rig.experiments.base import segment_rows
@@ -102,6 +102,11 @@ def test_chirp_speed_frf_follows_the_linearized_plant_from_1_to_10_hz(
     # Before issue 31 the position-dependent friction biased the lines 4–6 dB below 6 Hz. Now: on
     # average over the band no bias beyond 0.3 dB; 18 of the 19 lines within 1 dB; every line within 1 dB
     # or within twice its band from the data (the 10 Hz line, 1.9 dB off, is within 1.3σ of its own).
+    # That line's error is the load's Coulomb friction, not the analysis: the load's swing at its mode
+    # (lines 11 and 11.5 Hz) exceeds its mean speed, so the load reverses in ~8 % of the samples and its
+    # friction switches sign, which no linearization about the mean speed has (with the position
+    # effects off the error stays, +1.6 dB, deterministic: its band 0.07 dB; without load friction every
+    # line is within 0.3 dB).
     assert abs(float(np.mean(error_db))) < 0.3, error_db
     assert np.count_nonzero(np.abs(error_db) <= 1.0) >= 18, error_db
     assert np.all((np.abs(error_db) <= 1.0) | (np.abs(error_db) <= 2.0 * sigma_db)), (error_db, sigma_db)
@@ -128,3 +133,37 @@ def test_chirp_modes_do_not_move_with_the_grid_beyond_the_stated_resolution(
         assert abs(a - b) <= worst, f"{key}: {a:.3f} Hz on 0.5 Hz lines, {b:.3f} Hz on 0.25 Hz lines"
         for got, metrics in ((a, coarse), (b, narrow)):
             assert abs(got - true_hz) <= float(metrics["resonance_resolution_hz"]), (key, got, true_hz)
+
+
+def test_chirp_of_a_linear_plant_with_a_barely_damped_load_is_exact(tmp_path, seed: HarmonicDriveModel):
+    """The seed with no friction but viscous (b_m = 2e-4 N·m·s/rad, the load's b_l = 0.05 kept) and no
+    kinematic error is linear: its chirp FRF equals the linearized response at every line from 1 to
+    10 Hz within 0.05 dB (the encoder's quantization and the speed filter's rounding leave less). The
+    load mode, its motor held by the loop, decays with J_l/b_l = 4 s: its ring from the speed-up and the
+    lead-in runs through the analyzed periods, and before `periodic_records` took it out it leaked into
+    every line (−2 to +8 dB over 1–10 Hz)."""
+    data = seed.to_dict()
+    data["load_friction"].update(f_cl=0.0, f_sl=0.0)
+    data["kinematic_error"]["A"] = 0.0
+    data["motor_friction"].update(
+        a=[0.0] * len(data["motor_friction"]["a"]),
+        b=[0.0] * len(data["motor_friction"]["b"]),
+        s1=0.0,
+        s2=0.0,
+        s3=0.0,
+        k_v=0.0,
+        b_m=2e-4,
+    )
+    linear = HarmonicDriveModel.model_validate(data)
+    config = CFG.model_copy(update={"model": str(save_model(linear, tmp_path / "linear.yaml"))})
+    with RunStore(tmp_path / "runs") as store:
+        outcome = run_experiment("chirp", config, {}, store)
+        assert outcome.status == "complete", outcome.reason
+        table = next(p for p in outcome.artifacts if p.name == "frf_speed.csv")
+        frf = np.genfromtxt(table, delimiter=",", names=True)
+    band = (frf["freq_hz"] >= 1.0) & (frf["freq_hz"] <= 10.0)
+    expected = _linearized_speed_frf(
+        linear, frf["freq_hz"][band], float(outcome.metrics["sweep_mean_speed_rad_s"]), 0.0
+    )
+    error_db = frf["magnitude_db"][band] - 20 * np.log10(np.abs(expected))
+    assert np.all(np.abs(error_db) <= 0.05), error_db

@@ -25,7 +25,11 @@ loop's transient), then `periods` whole periods are analyzed. Why so:
   to zero over the periods (harmonics that are multiples of `periods` excepted); the slow Coulomb
   level C(θ_m), quadratic in θ_m along the ramp, is taken out as a polynomial trend in time
   (`periodic_records`); and the sweep back over the same stretch flips the friction's sign, so its
-  slope against position (a small spring) cancels between the sweeps.
+  slope against position (a small spring) cancels between the sweeps;
+- a barely damped mode (the seed's load with its motor held by the loop, J_l/b_l = 4 s) still rings
+  from the speed-up and the lead-in through the analyzed periods: not periodic, on no line, that ring
+  leaks into every line of a period's DFT (−2 to +8 dB over 1–10 Hz on a linear plant). It is fitted
+  as a decaying sinusoid beside the trend and taken out with it (`periodic_records`, `ring_mode`).
 
 Estimated at the excitation's lines from the DFTs of each analyzed period (trend taken out), the
 reference r being the output set-point with the mean-speed ramp taken out (of it and of θ_l alike), so
@@ -57,6 +61,7 @@ from pathlib import Path
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
+from scipy import optimize
 
 from model.errors import UserInputError
 from model.run import Run
@@ -214,24 +219,71 @@ def analyzed_rows(run: Run, label: str, params: ChirpParams, ctx: RigContext) ->
 TREND_DEGREE = 3
 """Degree of the polynomial trend taken out of each sweep before its periods are averaged: the slow
 Coulomb level C(θ_m) is quadratic in the position, which rides on a ramp; one degree to spare."""
+RING_MODES = 1
+"""Decaying rings taken out of each sweep beside the trend (`periodic_records`)."""
+
+
+def _off_periodic(v: np.ndarray, cycles: int, periods: int) -> np.ndarray:
+    """Columns of `v` less their average over the periods (a component repeating every period: zero)."""
+    w = v.reshape(periods, cycles, -1)
+    return np.asarray((w - w.mean(axis=0)).reshape(cycles * periods, -1))
+
+
+def _ring_basis(n: np.ndarray, decay: float, omega: float) -> np.ndarray:
+    """exp(−decay·n)·cos, sin(omega·n) over samples n [1/sample, rad/sample]."""
+    envelope = np.exp(-decay * n)
+    return np.stack([envelope * np.cos(omega * n), envelope * np.sin(omega * n)], axis=1)
+
+
+def ring_mode(
+    residual: np.ndarray, trend: np.ndarray, cycles: int, periods: int
+) -> tuple[float, float] | None:
+    """(decay, frequency) of the strongest decaying ring in what the periodic part and the trend leave
+    [1/sample, rad/sample], or None: its frequency first from the residual's zero-padded spectrum, then
+    both refined by least squares (variable projection)."""
+    rows = residual.size
+    spectrum = np.abs(np.fft.rfft(residual, 8 * rows))
+    spectrum[: 8 * periods] = 0.0  # below one line: the trend's
+    omega0 = 2 * np.pi * int(np.argmax(spectrum)) / (8 * rows)
+    n = np.arange(rows, dtype=float)
+
+    def cost(x: np.ndarray) -> float:
+        decay, omega = float(np.exp(x[0])), float(x[1])
+        basis = _off_periodic(np.column_stack([trend, _ring_basis(n, decay, omega)]), cycles, periods)
+        coef, *_ = np.linalg.lstsq(basis, residual, rcond=None)
+        return float(np.sum((residual - basis @ coef) ** 2))
+
+    found = optimize.minimize(cost, np.array([np.log(1.0 / rows), omega0]), method="Nelder-Mead")
+    decay, omega = float(np.exp(found.x[0])), float(found.x[1])
+    if not found.success or not 0 < omega < np.pi or decay * rows > 20:
+        return None
+    return decay, omega
 
 
 def periodic_records(x: np.ndarray, cycles: int, periods: int) -> np.ndarray:
-    """`x` over whole periods as a (periods × cycles) array, a polynomial trend in time taken out.
+    """`x` over whole periods as a (periods × cycles) array, a polynomial trend in time and the ring of a
+    lightly damped mode taken out.
 
     The trend (degree TREND_DEGREE, no constant) is fitted by least squares to what the periodic part
     leaves: both x and the trend's regressors have their average over periods taken out first, so a
-    component repeating every period is never mistaken for trend.
+    component repeating every period is never mistaken for trend. The ring (RING_MODES decaying
+    sinusoids, `ring_mode`, each found in what the fit before it left) is fitted beside the trend the
+    same way: a mode barely damped (the seed's load, J_l/b_l = 4 s, with the motor held by the loop)
+    still rings from the speed-up and the lead-in through the analyzed periods, and that ring, on no
+    line, leaks into every line of a period's DFT.
     """
     rows = cycles * periods
     t = np.linspace(-1.0, 1.0, rows)
     basis = np.stack([t**degree for degree in range(1, TREND_DEGREE + 1)], axis=1)
-
-    def off_periodic(v: np.ndarray) -> np.ndarray:
-        w = v.reshape(periods, cycles, -1)
-        return (w - w.mean(axis=0)).reshape(rows, -1)
-
-    coef, *_ = np.linalg.lstsq(off_periodic(basis), off_periodic(x[:, None])[:, 0], rcond=None)
+    target = _off_periodic(x[:, None], cycles, periods)[:, 0]
+    n = np.arange(rows, dtype=float)
+    for _ in range(RING_MODES):
+        coef, *_ = np.linalg.lstsq(_off_periodic(basis, cycles, periods), target, rcond=None)
+        mode = ring_mode(target - _off_periodic(basis, cycles, periods) @ coef, basis, cycles, periods)
+        if mode is None:
+            break
+        basis = np.column_stack([basis, _ring_basis(n, *mode)])
+    coef, *_ = np.linalg.lstsq(_off_periodic(basis, cycles, periods), target, rcond=None)
     return np.asarray((x - basis @ coef).reshape(periods, cycles))
 
 
