@@ -32,6 +32,7 @@ const page = {
   live: null, // {runId, source, window, lastEventId}
   charts: new Map(), // plot id → uPlot
   rig: null, // the last GET /rig answer
+  closed: null, // why the service said it closed (its `closed` event), until it answers again
 };
 
 // ---- small DOM helpers --------------------------------------------------------------------------
@@ -150,7 +151,15 @@ function stopPolling() {
 // ---- the rig ------------------------------------------------------------------------------------
 
 async function pollRig() {
-  const rig = await request("GET", "/rig");
+  let rig;
+  try {
+    rig = await request("GET", "/rig");
+  } catch (error) {
+    // Not answered: the bar must not keep the last green it had. A 401 is the login form's business.
+    if (!(error instanceof ProblemError && error.status === 401)) renderUnreachable(error);
+    throw error;
+  }
+  page.closed = null; // answered again: a service that closed is back
   renderRig(rig);
   // A run in progress that this page does not follow yet (started elsewhere, or before a reload).
   const run = currentRun(rig);
@@ -178,6 +187,30 @@ function renderRig(rig) {
   renderState(rig.state);
   renderHealth(rig.health || {}, rig.state);
   renderRigDetails(rig);
+}
+
+/** The service is not answering: its state and health are unknown (grey), not the last ones seen. If it
+ * said why it went away (the `closed` event), that stays: it says more than "unreachable". */
+function renderUnreachable(error) {
+  if (page.closed) return renderClosed(page.closed);
+  renderUnknown("unreachable", `service unreachable (${error.message})`);
+}
+
+/** The service said it is closing (its event stream's last event): the rig is quick-stopped by now. */
+function renderClosed(why) {
+  renderUnknown("closed", `the service closed: ${why}`);
+}
+
+function renderUnknown(state, text) {
+  renderState(state);
+  const drive = $("rig-drive");
+  drive.textContent = "drive unknown";
+  drive.className = "chip health-unknown";
+  const node = $("rig-health");
+  node.textContent = text;
+  node.dataset.level = "unknown";
+  node.className = "chip health-unknown";
+  $("reset").hidden = true;
 }
 
 function renderState(state) {
@@ -399,7 +432,7 @@ function followRun(runId) {
   const source = new EventSource(`/api/v1/runs/${encodeURIComponent(runId)}/events`);
   // `begun`: this run's own first `run` event has arrived. A stream read from its start also carries the
   // rig-wide events logged before the run began (earlier stops, states): history, not this run's alarms.
-  page.live = { runId, source, window, begun: false };
+  page.live = { runId, source, window, begun: false, ended: false };
   $("live-plots").hidden = false;
   $("live-run").textContent = runId;
   $("live-status").textContent = "";
@@ -421,12 +454,26 @@ function followRun(runId) {
   on("samples", onSamples);
   on("alarm", afterBegin(showAlarm));
   on("run", onRunDocument);
+  on("closed", onServiceClosed);
   source.onerror = () => {
-    // CLOSED: the service refused the stream (401, 404...): it will not retry, the rig poll goes on.
-    if (source.readyState === EventSource.CLOSED && page.live && page.live.source === source) {
+    if (!page.live || page.live.source !== source) return;
+    if (page.live.ended) {
+      // The service ended the stream after the run's final document: done, no reconnecting.
+      source.close();
+    } else if (source.readyState === EventSource.CLOSED) {
+      // The service refused the stream (401, 404...): it will not retry, the rig poll goes on.
       $("live-status").textContent = "stream closed";
     }
   };
+}
+
+/** The stream's last word when the service shuts down (SIGTERM...): why, after the run's final document. */
+function onServiceClosed({ why }) {
+  page.live.source.close();
+  page.closed = why || "no reason given";
+  renderClosed(page.closed);
+  $("abort").hidden = true;
+  showMessage(`The service closed: ${page.closed}.`, 0, "final-bad");
 }
 
 function closeLive() {
@@ -516,13 +563,17 @@ function onRunDocument(run) {
   // The notice follows the run: "queued" gives way to "running", then to how it ended.
   if (!FINAL_RUN_STATUSES.has(status)) showMessage(`Run ${run.id} ${status}.`, 0);
   if (FINAL_RUN_STATUSES.has(status)) {
-    // The stream ends after the final document; closing it here keeps EventSource from reconnecting.
-    page.live.source.close();
+    // Not closed here: a service shutting down sends its `closed` event after this. The service ends the
+    // stream after the final document and onerror closes it then, before EventSource reconnects.
+    page.live.ended = true;
     $("abort").hidden = true;
     const fraction = status === "complete" ? 1 : $("progress").value;
     renderProgress({ fraction, phase: status, eta_s: null }); // no ETA once it has ended
     const tone = status === "complete" ? "final-ok" : "final-bad";
     showMessage(`Run ${run.id} ${run.reason ? prefixed(status, run.reason) : status}.`, status === "complete" ? 15 : 0, tone);
+    // The row says how it ended even when the list cannot be fetched again (a service shutting down).
+    const row = [...$("runs").tBodies[0].rows].find((r) => r.dataset.id === run.id);
+    if (row) row.replaceWith(runRow(run, "")); // no signature: the next refresh replaces it
     refreshRuns().catch(() => {});
     refreshJobs().catch(() => {});
   }
