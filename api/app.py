@@ -55,16 +55,16 @@ from api.schemas import (
 )
 from model.errors import UserInputError
 from model.params import load_model, parse_model, preset_names
-from rig.catalog import DEFAULT_PAGE, MAX_PAGE
 from rig.config import RigConfig
 from rig.core import access, actions
 from rig.core.access import AuditEntry, KeyInfo, Role
 from rig.core.documents import ExperimentInfo, JobDocument, JobKind, JobStatus, ModelSummary, RunDocument
 from rig.core.events import Event, EventKind
 from rig.core.worker import AnalysisWorker, Job, RigWorker, UnknownJobError
-from rig.runfile import write_columns
 from rig.status import RunStatus
-from rig.store import ARTIFACTS_DIR, EXPORT_FORMATS, MODEL_NAME_PATTERN, RunStore
+from rig.store.catalog import DEFAULT_PAGE, MAX_PAGE
+from rig.store.runfile import write_columns
+from rig.store.runs import ARTIFACTS_DIR, EXPORT_FORMATS, MODEL_NAME_PATTERN, RunStore
 
 API = "/api/v1"
 STATIC_DIR = Path(__file__).parent / "static"

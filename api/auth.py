@@ -22,7 +22,7 @@ from fastapi.security import APIKeyCookie, HTTPAuthorizationCredentials, HTTPBea
 from api.problems import ProblemError
 from rig.core import access
 from rig.core.access import Role
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 SESSION_COOKIE = "hdrig_session"
 CSRF_COOKIE = "hdrig_csrf"

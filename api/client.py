@@ -27,9 +27,9 @@ from typing import Any, Literal
 import httpx
 
 from model.errors import UserInputError
-from rig.catalog import DEFAULT_PAGE, MAX_PAGE
 from rig.core.documents import ExperimentInfo, JobDocument, JobStatus, ModelSummary, RunDocument, RunPage
 from rig.status import RunStatus
+from rig.store.catalog import DEFAULT_PAGE, MAX_PAGE
 
 API = "/api/v1"
 TIMEOUT_S = 30.0  # one request's connect/read limit; a download or a stream reads in pieces within it

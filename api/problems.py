@@ -15,7 +15,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from model.errors import UserInputError
 from model.run import RunFormatError
 from rig.core.worker import RigBusyError, UnknownJobError, WorkerClosedError
-from rig.store import UnknownRunError
+from rig.store.runs import UnknownRunError
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,6 @@ from typing import Any, Literal
 from api.client import POLL_S, HdrigClient, ServiceError, ServiceInputError
 from model.errors import UserInputError
 from model.run import Run
-from rig.catalog import DEFAULT_PAGE
 from rig.core.actions import MODEL_FILE
 from rig.core.documents import (
     ExperimentInfo,
@@ -33,8 +32,9 @@ from rig.core.documents import (
 )
 from rig.faults import DeviceFaultError
 from rig.lab import Landed
-from rig.runfile import read_parquet
-from rig.store import export_path
+from rig.store.catalog import DEFAULT_PAGE
+from rig.store.runfile import read_parquet
+from rig.store.runs import export_path
 
 Progress = Callable[[str, float], None]  # rig.runner.Progress: (phase, fraction done)
 REPORT_FOLDER = "report"  # where the service writes an analysis' report inside its folder (api.app)
@@ -138,7 +138,7 @@ class RemoteLab:
         return self.client.run(run_id)
 
     def export_run(self, run_id: str, fmt: str, out: str | Path) -> Path:
-        from rig.runfile import write_run
+        from rig.store.runfile import write_run
 
         path = export_path(run_id, fmt, out)
         with tempfile.TemporaryDirectory(prefix="hdrig-export-") as scratch:

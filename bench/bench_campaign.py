@@ -47,7 +47,7 @@ def main() -> int:
     from rig.core.documents import RunDocument
     from rig.experiments import CAMPAIGN_ORDER
     from rig.runner import run_experiment
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     import_s = time.perf_counter() - started
 

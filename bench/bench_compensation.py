@@ -21,7 +21,7 @@ sys.path.insert(0, str(REPO_ROOT))
 
 from rig.config import load_rig_config  # noqa: E402
 from rig.core import actions  # noqa: E402
-from rig.store import RunStore  # noqa: E402
+from rig.store.runs import RunStore  # noqa: E402
 
 TARGET = 3.0
 

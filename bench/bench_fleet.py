@@ -26,11 +26,11 @@ from typing import Any
 import sqlalchemy as sa
 
 from hdrig_testing.fleet_services import postgres_server
-from rig import catalog as tables
-from rig.catalog import Cursor
 from rig.config import load_rig_config
 from rig.core import access, actions, fleet
-from rig.store import RunStore
+from rig.store import catalog as tables
+from rig.store.catalog import Cursor
+from rig.store.runs import RunStore
 
 RUNS = 100_000
 UNITS = 2_000  # 50 runs per gear unit
@@ -128,7 +128,7 @@ def rest_first_page_ms(store: RunStore) -> float:
 WRITER = textwrap.dedent(
     """
     import sys, time, numpy as np
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
     store = RunStore(sys.argv[1], catalog=sys.argv[2])
     runs, latencies = int(sys.argv[3]), []
     start = time.perf_counter()

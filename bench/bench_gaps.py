@@ -12,7 +12,7 @@ Prints tables, asserts nothing. What it measures:
      position-periodic friction, and null cases; `--independent-duration` s.
    Each case is judged on the gap in excess of its generator's null floor (the median initial gap of
    the null cases of the same rigidity): "excess removed" is (initial − final)/(initial − floor).
-2. The gap workflow (`model.gaps.find_gaps`) on each case: a hit is exactly the hidden effect named; a
+2. The gap workflow (`rig.analysis.gaps.find_gaps`) on each case: a hit is exactly the hidden effect named; a
    false alarm is any named effect that was not hidden (null cases: anything named). Shrinkage is the
    gap (shooting error) before/after, and the one-step residual's RMS on held-out blocks before/after.
 3. The same cases through a generic sparse regression (PySINDy's STLSQ, pip install pysindy): the same
@@ -41,12 +41,12 @@ import numpy as np
 
 from hdrig_testing.hidden_effects import HIDDEN, Case, hidden_case, record_probe
 from hdrig_testing.independent_plant import IndependentRig, lab_profile
-from model.gaps import find_gaps
-from model.gaps.effects import Context
-from model.gaps.residual import Residual
-from model.gaps.signals import Signals, prepare
-from model.gaps.workflow import GapsResult, residuals_of
 from model.run import Run
+from rig.analysis.gaps import find_gaps
+from rig.analysis.gaps.effects import Context
+from rig.analysis.gaps.residual import Residual
+from rig.analysis.gaps.signals import Signals, prepare
+from rig.analysis.gaps.workflow import GapsResult, residuals_of
 
 DT_S = 1e-4
 MIN_SHRINK = 1.25

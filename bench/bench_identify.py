@@ -25,16 +25,16 @@ import statistics
 import tempfile
 import time
 
-from model.fit.parameters import get_values, with_values
-from model.fit.trajectory import TrajectoryProblem, fit_problem
 from model.params import HarmonicDriveModel, load_model
 from model.run import Run
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.fit.trajectory import TrajectoryProblem, fit_problem
+from rig.analysis.identification import identify
+from rig.analysis.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S
 from rig.config import load_rig_config
 from rig.core.actions import execute_plan, plan_run
-from rig.identification import identify
-from rig.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S
 from rig.runner import run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 TARGET_S = 30.0

@@ -70,7 +70,7 @@ def serve(conn: Connection, home: str, port: int) -> None:
 
     from api.app import create_app
     from rig.config import load_rig_config
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
     from sim_backend.inprocess import SimRig
 
     lateness: list[tuple[float, float]] = []  # (wall clock at hand-over, seconds after the deadline)
@@ -172,7 +172,7 @@ def get_throughput(base: str, key: str, parallel: int) -> tuple[float, list[floa
 def record_tiny_runs(home: Path, count: int) -> float:
     """`count` runs of 20 samples through the store's own API; seconds taken."""
     from rig.status import RunStatus
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     store = RunStore(home)
     t = np.arange(20) * 1e-3
@@ -230,7 +230,7 @@ def main() -> None:
         home = Path(scratch) / "home"
         os.environ["HDRIG_HOME"] = str(home)
         from rig.core import access
-        from rig.store import RunStore
+        from rig.store.runs import RunStore
 
         key = access.create_key(RunStore(home), "operator", "bench")
         port = _free_port()
@@ -381,7 +381,7 @@ def oversized_request() -> None:
     import subprocess
 
     from rig.core import access
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     body = _abuse_body()
     print(f"\n## An oversized request: {ABUSE_SPEEDS:,} speeds, {len(body) / 1e6:.1f} MB, to `hdrig serve`")

@@ -21,7 +21,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from rig.config import load_rig_config
 from rig.core import access
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 API = "/api/v1"
 REPO = Path(__file__).resolve().parents[1]

@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from model.gaps.effects import merge_sections
 from model.params import HarmonicDriveModel, load_model
 from model.run import Run
 from model.simulate import simulate
+from rig.analysis.gaps.effects import merge_sections
 from rig.config import load_rig_config
 from rig.interface import ControlMode, Segment
 from sim_backend.inprocess import SimRig

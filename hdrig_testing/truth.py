@@ -42,7 +42,7 @@ from rig.experiments.base import (
     segments_of,
 )
 from rig.runner import make_params, run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 CFG: RigConfig = load_rig_config("sim")

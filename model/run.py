@@ -1,7 +1,7 @@
 """A run in memory: the one table format for measured, simulated and imported data (docs/INTERFACE.md).
 
 Columns are SI-unit numpy arrays of equal length, one row per sample. Files (Parquet, CSV) are read
-and written by `rig.runfile`; this module knows nothing of files.
+and written by `rig.store.runfile`; this module knows nothing of files.
 """
 
 from __future__ import annotations

@@ -85,7 +85,7 @@ class SimulationStream:
     """A simulation not yet run: its metadata and columns now, its samples block by block when iterated.
 
     Iterating integrates the next chunk of steps and yields its samples, so a run of any duration
-    is simulated and written (`rig.runfile.write_stream`) with memory bounded by one chunk.
+    is simulated and written (`rig.store.runfile.write_stream`) with memory bounded by one chunk.
     """
 
     meta: dict[str, Any]

@@ -159,7 +159,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def _simulate(args: argparse.Namespace) -> int:
     from model.simulate import replay, simulate_stream
-    from rig.runfile import read_run, write_run, write_stream
+    from rig.store.runfile import read_run, write_run, write_stream
 
     _here_only(args)
     model = load_model(args.model)
@@ -266,7 +266,7 @@ def _page_size(text: str) -> int:
 
 
 def cmd_runs_list(args: argparse.Namespace) -> int:
-    from rig.catalog import DEFAULT_PAGE
+    from rig.store.catalog import DEFAULT_PAGE
 
     lab = _lab(args)
     page = lab.list_runs(
@@ -344,7 +344,7 @@ def cmd_runs_show(args: argparse.Namespace) -> int:
 
 
 def cmd_runs_analyze(args: argparse.Namespace) -> int:
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     _here_only(args)
     run = actions.analyze_run(RunStore(), args.run)
@@ -365,7 +365,7 @@ def cmd_runs_export(args: argparse.Namespace) -> int:
 
 
 def cmd_trend(args: argparse.Namespace) -> int:
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     document = actions.trend(RunStore(), run_id=args.run, unit=args.unit, plot_dir=args.plot)
     if args.json:
@@ -433,7 +433,7 @@ def _fit_batch(args: argparse.Namespace) -> int:
     """`hdrig fit --data 'unit=HD25-*' --batch`: every unit's fit on Dask, and the fleet report."""
     from rig.core import fleet
     from rig.progress import ProgressBar
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     if getattr(args, "server", None):
         raise UserInputError("fit --batch runs on this machine's store and a Dask cluster, not over --server")
@@ -476,7 +476,7 @@ def cmd_gaps(args: argparse.Namespace) -> int:
 
 def cmd_keys_create(args: argparse.Namespace) -> int:
     from rig.core import access
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     _here_only(args)
     print(access.create_key(RunStore(), args.role, args.name))  # the key alone: scripts read stdout
@@ -486,7 +486,7 @@ def cmd_keys_create(args: argparse.Namespace) -> int:
 
 def cmd_keys_list(args: argparse.Namespace) -> int:
     from rig.core import access
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     _here_only(args)
     keys = access.list_keys(RunStore())
@@ -500,7 +500,7 @@ def cmd_keys_list(args: argparse.Namespace) -> int:
 
 def cmd_keys_revoke(args: argparse.Namespace) -> int:
     from rig.core import access
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     _here_only(args)
     access.revoke_key(RunStore(), args.name, door="command line")  # audited in the same transaction
@@ -540,7 +540,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     from rig.config import load_rig_config
     from rig.core import access
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     _here_only(args)
     config = load_rig_config(args.rig)

@@ -15,7 +15,6 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from model.errors import UserInputError
 from model.params import PRESET_DIR
-from rig.catalog import DEFAULT_PAGE
 from rig.core import actions
 from rig.core.documents import (
     ExperimentInfo,
@@ -28,6 +27,7 @@ from rig.core.documents import (
 from rig.faults import DeviceFaultError
 from rig.runner import Progress
 from rig.status import RunStatus
+from rig.store.catalog import DEFAULT_PAGE
 
 if TYPE_CHECKING:
     from rig.core.worker import Job, RigWorker
@@ -97,7 +97,7 @@ class Lab(Protocol):
         mapping: Sequence[str] | None = None,
         joint: bool = True,
     ) -> FitDocument:
-        """`mapping`: `--map` entries for files with other column names (`rig.importmap`)."""
+        """`mapping`: `--map` entries for files with other column names (`rig.store.importmap`)."""
         ...
 
     def find_gaps(
@@ -118,7 +118,7 @@ class LocalLab:
     presets_where = str(PRESET_DIR)
 
     def __init__(self) -> None:
-        from rig.store import RunStore
+        from rig.store.runs import RunStore
 
         self.store = RunStore()
         self.store_where = str(self.store.home)

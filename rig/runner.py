@@ -29,9 +29,9 @@ from rig.experiments.base import Experiment, ExperimentParams, Observer, Results
 from rig.experiments.tracking import ZERO_WINDOW_S
 from rig.faults import DeviceFaultError
 from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig, Segment, SegmentResult, open_rig
-from rig.runfile import json_text
 from rig.status import RunStatus
-from rig.store import PART_ROWS_MAX, AnalysisState, RunStore, RunWriter
+from rig.store.runfile import json_text
+from rig.store.runs import PART_ROWS_MAX, AnalysisState, RunStore, RunWriter
 
 logger = logging.getLogger(__name__)
 

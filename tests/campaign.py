@@ -9,7 +9,7 @@ from model.params import HarmonicDriveModel
 from model.run import Run
 from rig.config import RigConfig
 from rig.runner import run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 

@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 from api.app import create_app, iter_routes
 from rig.config import RigConfig, load_rig_config
 from rig.core import access
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 API = "/api/v1"
 WAIT_S = 120.0  # upper bound for a short simulated run on a loaded 2-core machine; never reached when well

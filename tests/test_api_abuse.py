@@ -22,7 +22,7 @@ from api.app import create_app
 from api.problems import DETAIL_MAX
 from rig.config import load_rig_config
 from rig.core import access
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 API = "/api/v1"
 PROBLEM = "application/problem+json"

@@ -17,7 +17,7 @@ from api.app import create_app
 from model.params import load_model
 from rig.config import load_rig_config
 from rig.core import access
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 API = "/api/v1"
 

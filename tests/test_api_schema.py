@@ -23,7 +23,7 @@ from schemathesis.checks import (
 from api.app import create_app
 from rig.config import load_rig_config
 from rig.core import access
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 STORE = RunStore(tempfile.mkdtemp(prefix="hdrig-schemathesis-"))
 KEY = access.create_key(STORE, "operator", "schemathesis")

@@ -23,7 +23,7 @@ import pytest
 import yaml
 
 from rig.status import RunStatus
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 API = "/api/v1"
 START_S = 60.0  # the service answers health within this on a loaded machine (imports, rig open)

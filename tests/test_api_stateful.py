@@ -19,10 +19,10 @@ from hypothesis import HealthCheck, settings
 from schemathesis.checks import not_a_server_error
 
 from api.app import create_app
-from rig import catalog as tables
 from rig.config import load_rig_config
 from rig.core import access
-from rig.store import RunStore
+from rig.store import catalog as tables
+from rig.store.runs import RunStore
 
 STORE = RunStore(tempfile.mkdtemp(prefix="hdrig-stateful-"))
 ADMIN = access.create_key(STORE, "admin", "stateful-admin")

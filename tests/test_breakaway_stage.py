@@ -14,11 +14,11 @@ import math
 import numpy as np
 import pytest
 
-from model.fit.parameters import with_values
 from model.params import HarmonicDriveModel, load_model
 from model.plant import Plant
 from model.run import Run
-from rig.identification import friction_stage
+from rig.analysis.fit.parameters import with_values
+from rig.analysis.identification import friction_stage
 
 
 @pytest.fixture(scope="module")

@@ -38,7 +38,7 @@ from rig.core.actions import execute_plan, plan_run
 from rig.interface import ControlMode, ModeRefusedError
 from rig.runner import run_experiment
 from rig.status import RunStatus
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.cia402_twin import TWIN_EDS, Cia402Twin
 
 # Each test builds twins from an EDS (~63,000 objects each); a full collection of what earlier tests

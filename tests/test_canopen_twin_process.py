@@ -30,7 +30,7 @@ from rig.config import RIG_DIR, RigConfig
 from rig.interface import SAMPLE_COLUMNS, ControlMode, Segment
 from rig.runner import RunHooks, run_experiment
 from rig.status import RunStatus
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend import virtual_bus
 from sim_backend.cia402_twin import TWIN_EDS
 from sim_backend.virtual_bus import VirtualCanRig

@@ -49,7 +49,7 @@ from model.params import HarmonicDriveModel
 from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.runner import run_experiment
 from rig.status import RunStatus
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.cia402_twin import Cia402Twin
 
 # Each test builds twins from an EDS (~63,000 objects each); a full collection of what earlier tests

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import sqlalchemy as sa
 
-from rig.catalog import StoreError, head_revision
 from rig.core import access
-from rig.store import RunStore
+from rig.store.catalog import StoreError, head_revision
+from rig.store.runs import RunStore
 
 COLUMNS = ["t", "u", "theta_m"]
 
@@ -144,7 +144,7 @@ def test_the_store_works_the_same_on_postgresql(tmp_path: Path, pg_url: str) -> 
 WRITER = textwrap.dedent(
     """
     import sys, numpy as np
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
     from rig.core import access
     home, catalog, name, runs = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
     store = RunStore(home, catalog=catalog)  # all start together: the first migrates, the others wait

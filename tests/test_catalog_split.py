@@ -23,10 +23,10 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from model.errors import UserInputError
 from model.params import load_model
-from rig.catalog import OwnFileError, refuse_own_file
 from rig.config import load_rig_config
 from rig.core import access
-from rig.store import RunStore
+from rig.store.catalog import OwnFileError, refuse_own_file
+from rig.store.runs import RunStore
 
 API = "/api/v1"
 REPO = Path(__file__).resolve().parents[1]

@@ -22,7 +22,7 @@ from rig.config import load_rig_config
 from rig.experiments.base import segment_rows
 from rig.experiments.chirp import SWEEPS
 from rig.runner import RunOutcome, run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 CFG = load_rig_config("sim")
 RATE_HZ = CFG.sample_rate_hz

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.runfile import read_run
+from rig.store.runfile import read_run
 
 
 def hdrig(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:

@@ -22,8 +22,8 @@ import yaml
 
 from rig.config import RIG_DIR
 from rig.experiments import CAMPAIGN_ORDER
-from rig.runfile import read_run
-from rig.store import RunStore
+from rig.store.runfile import read_run
+from rig.store.runs import RunStore
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 GEAR_RATIO = 0.01  # seed preset's r: output angle = r · θ_m

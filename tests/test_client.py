@@ -21,7 +21,7 @@ from test_api_server import REPO, START_S, WAIT_S, Server, free_port, operator_k
 from api.client import HdrigClient, ServiceInputError, ServiceUnreachableError
 from model.errors import UserInputError
 from rig.core.documents import JobStatus, RunDocument
-from rig.runfile import read_run
+from rig.store.runfile import read_run
 
 SHORT_SWEEP = "speeds_rad_s=[2,20]"
 SIM = str(REPO / "configs/rigs/sim.yaml")

@@ -28,13 +28,13 @@ from model.feedforward import (
     loop_torque_nm,
     min_measured_band_rad_s,
 )
-from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel, load_model, save_model
+from rig.analysis.fit.parameters import get_values, with_values
 from rig.config import load_rig_config
 from rig.core import actions
 from rig.experiments import CAMPAIGN_ORDER
 from rig.interface import ControlMode, RigError, Segment, open_rig
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DT_S = 1e-3  # the sim rig's 1 kHz cycle

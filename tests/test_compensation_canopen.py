@@ -37,7 +37,7 @@ from rig.experiments.base import RigContext
 from rig.experiments.compensation import Compensation, CompensationParams
 from rig.interface import ControlMode, RigError, Segment
 from rig.runner import run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.virtual_bus import VirtualCanRig
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

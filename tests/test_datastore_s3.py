@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from hdrig_testing.fleet_services import S3Server
-from rig.runfile import read_run
-from rig.store import MERGE_FANIN, RunStore
+from rig.store.runfile import read_run
+from rig.store.runs import MERGE_FANIN, RunStore
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 COLUMNS = ["t", "u", "theta_m"]
@@ -62,7 +62,7 @@ def test_parts_merges_and_the_sealed_file_are_objects_and_read_back_exactly(
 CRASHING_WRITER = """
 import sys, time
 import numpy as np
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 store = RunStore(sys.argv[1], data=sys.argv[2])
 writer = store.open_run("crash", "sim", None, None, ["t", "u", "theta_m"], {}, 0.2)

@@ -32,7 +32,7 @@ from rig.experiments.endurance import (
 )
 from rig.interface import Segment, open_simulated_rig
 from rig.runner import analyze_stored, make_params, run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 K_WEAR = 2e-5  # per rad: +10 % in 5,000 rad, a few simulated minutes of the duty cycle
 UNIT = "TEST-UNIT-7"

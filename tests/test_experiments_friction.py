@@ -33,7 +33,7 @@ from rig.experiments.position_friction import PositionFrictionParams
 from rig.experiments.pulse import PulseParams, pulse_labels
 from rig.experiments.speed_sweep import SpeedSweepParams
 from rig.runner import RunOutcome, run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 CFG = load_rig_config("sim")  # runs the seed model
 PULSE_AMPS_V = (1.5, 2.0, 3.0)  # 3 V starts at 3/R = 10 A, under the sim rig's 12 A trip

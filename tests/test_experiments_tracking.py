@@ -21,7 +21,7 @@ from model.run import Run
 from rig.config import RigConfig, load_rig_config
 from rig.experiments.tracking import ZERO_WINDOW_S
 from rig.runner import RunOutcome, run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 CFG: RigConfig = load_rig_config("sim")

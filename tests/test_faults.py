@@ -30,10 +30,10 @@ from model.params import load_model
 from model.simulate import simulate_stream
 from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.interface import Block, open_rig
-from rig.runfile import read_run
 from rig.runner import RunHooks, run_experiment
 from rig.status import RunStatus
-from rig.store import RunStore
+from rig.store.runfile import read_run
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 from sim_backend.virtual_bus import VirtualCanRig
 

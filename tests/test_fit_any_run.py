@@ -13,15 +13,15 @@ import pytest
 import scipy.io
 
 from hdrig_testing.independent_plant import Controller, IndependentRig, lab_profile, single_axis_profile
-from model.fit.inverse import inverse_model_fit
-from model.fit.parameters import with_values
 from model.params import HarmonicDriveModel, load_model, parse_model
 from model.run import Run
 from model.simulate import simulate
+from rig.analysis.fit.inverse import inverse_model_fit
+from rig.analysis.fit.parameters import with_values
+from rig.analysis.identification import identify
 from rig.core import actions
-from rig.identification import identify
-from rig.runfile import write_run
-from rig.store import RunStore
+from rig.store.runfile import write_run
+from rig.store.runs import RunStore
 
 # A linear positioning axis in SI units of its own (m, N, kg): a 2.4 kg carriage, Coulomb 6 N, breakaway
 # 7 N, viscous 18 N·s/m, driven by force = 1 N per unit of command (K_m = 1). The model schema is rotary;

@@ -1,4 +1,5 @@
-"""Staged identification (rig.identification.staged) recovers known parameters from simulated campaigns.
+"""Staged identification (rig.analysis.identification.staged) recovers known parameters from simulated
+campaigns.
 
 Truth: the seed preset. Runs: the experiments the stages read (speed sweep, position friction, pulses,
 load variation, ramp, chirp), played by the runner on the in-process sim rig with the truth as its plant,
@@ -44,13 +45,13 @@ import campaign
 import numpy as np
 import pytest
 
-from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel
 from model.run import Run
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.identification.staged import StagedResult, staged_estimates
 from rig.config import RigConfig, Sensors, load_rig_config
-from rig.identification.staged import StagedResult, staged_estimates
 from rig.runner import run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 EXPERIMENTS = ("speed-sweep", "position-friction", "pulse", "load-variation", "ramp", "chirp")

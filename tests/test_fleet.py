@@ -23,7 +23,7 @@ from api.client import HdrigClient
 from hdrig_testing.fleet_services import S3Server
 from model.params import load_model
 from rig.core import access, fleet
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 REPO = Path(__file__).resolve().parents[1]
 START_S = 90.0  # a service's start on a loaded 2-core machine (imports, numba's cache); a deadline

@@ -23,7 +23,7 @@ from model.params import load_model
 from model.run import PLAUSIBLE_MAGNITUDE
 from rig.cli import main
 from rig.config import load_rig_config
-from rig.runfile import read_run
+from rig.store.runfile import read_run
 
 SEED_TEXT = (Path(__file__).resolve().parents[1] / "configs" / "models" / "seed.yaml").read_bytes()
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])

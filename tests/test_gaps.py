@@ -1,7 +1,7 @@
 """The model-gap workflow on data with a hidden effect: it names the effect, adds it, the gap shrinks.
 
 Data come from the simulated rig (closed loop: drive velocity loop, 17-bit encoder, 2 µrad output-sensor
-noise) running `model.gaps.synthetic`'s probe on a truth model; the model handed to the workflow lacks
+noise) running `rig.analysis.gaps.synthetic`'s probe on a truth model; the model handed to the workflow lacks
 the hidden effect(s). Tolerances: the gap (RMS shooting error over 20 ms windows, rad at the motor) must
 shrink at least SHRINK = 3× after the hidden effect is added (the issue's requirement; the cases below
 shrink 17–900× in practice), and a model that already matches the data must get no step at all.
@@ -21,12 +21,12 @@ import pytest
 
 from hdrig_testing.hidden_effects import HIDDEN, Case, hidden_case, record_open_loop, record_probe
 from hdrig_testing.independent_plant import IndependentRig, lab_profile
-from model.gaps import METRIC, GapsResult, find_gaps
-from model.gaps.effects import SCREENS, SYSTEMATIC
-from model.gaps.workflow import GapOptions
 from model.params import load_model, save_model
+from rig.analysis.gaps import METRIC, GapsResult, find_gaps
+from rig.analysis.gaps.effects import SCREENS, SYSTEMATIC
+from rig.analysis.gaps.workflow import GapOptions
 from rig.core.actions import gaps_document
-from rig.runfile import write_run
+from rig.store.runfile import write_run
 
 SHRINK = 3.0
 DURATION_S = 12.0  # long enough for thermal drift (τ = 4 s) and a pass over the stroke, short for the suite
@@ -207,7 +207,7 @@ def test_a_large_gap_no_effect_explains_is_reported_not_left_unsaid(monkeypatch:
     # still say the gap is systematic, where the residual lives (low speeds), and why each candidate tried
     # was rejected.
     kept = ("coulomb_friction", "viscous_friction", "direction_asymmetry")
-    monkeypatch.setattr("model.gaps.effects.SCREENS", {name: SCREENS[name] for name in kept})
+    monkeypatch.setattr("rig.analysis.gaps.effects.SCREENS", {name: SCREENS[name] for name in kept})
     case = hidden_case(("stribeck",))
     result = find_gaps([record_probe(case.truth, DURATION_S, load_sensor=False)], case.model)
     assert result.steps == []

@@ -16,13 +16,13 @@ from pathlib import Path
 
 import pytest
 
-from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel, load_model
 from model.run import Run
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.identification import identify
 from rig.config import load_rig_config
 from rig.core.actions import execute_plan, plan_run
-from rig.identification import identify
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 EXPERIMENTS = ("speed-sweep", "position-friction", "pulse", "load-variation", "step", "sine", "ramp", "chirp")
 

@@ -19,15 +19,15 @@ import pytest
 from scipy.stats import chi2
 from test_replay_continuous import FLOOR
 
-from model.fit.parameters import get_values
-from model.fit.trajectory import fit_trajectories, window_robust_covariance
 from model.params import HarmonicDriveModel
 from model.run import Run
+from rig.analysis.fit.parameters import get_values
+from rig.analysis.fit.trajectory import fit_trajectories, window_robust_covariance
+from rig.analysis.identification.dynamics_stage import motor_constants
+from rig.analysis.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S, disagreement_scales
 from rig.config import load_rig_config
-from rig.identification.dynamics_stage import motor_constants
-from rig.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S, disagreement_scales
 from rig.runner import run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 SEEDS = range(1, 9)
@@ -155,7 +155,7 @@ def test_inertias_from_trajectories_of_ideal_sensors_are_unbiased(
     first position's instant (not half a replay step earlier, where the semi-implicit Euler holds it)
     gave J_l +0.18 % at a σ of 0.021 % (9σ) and J_m +0.13 % at 0.042 % (3.2σ); with the lag, −0.000 %
     at 0.011 % and −0.015 % at 0.021 % (0.7σ), from 11-sample starting speeds. From 5-sample ones
-    (`model.fit.trajectory.SMOOTHING_WINDOW_S`), J_l −0.0105 % at 0.0028 %, J_m −0.0017 % at 0.0076 %.
+    (`rig.analysis.fit.trajectory.SMOOTHING_WINDOW_S`), J_l −0.0105 % at 0.0028 %, J_m −0.0017 % at 0.0076 %.
     Bound: 3 of the fit's own σ (its σ here comes from the smoothed starting speeds' error alone, the
     only imperfection left), and not under `FLOOR` (tests/test_replay_continuous.py: under half the σ
     the rig's noisy sensors give; the lag's error is 9× it)."""

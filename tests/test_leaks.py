@@ -46,7 +46,7 @@ def measure(folder: Path) -> dict[str, Any]:
     from rig.config import load_rig_config
     from rig.core import actions
     from rig.runner import run_experiment
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     store = RunStore(folder / "home")
     config = load_rig_config("configs/rigs/sim.yaml").model_copy(update={"pace": "virtual"})

@@ -23,12 +23,12 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from api.client import HdrigClient
 from model.errors import UserInputError
-from rig import catalog as tables
 from rig import cli
-from rig.catalog import DEFAULT_PAGE, MAX_PAGE, Cursor, head_revision
 from rig.config import load_rig_config
 from rig.core import access, actions
-from rig.store import RunStore
+from rig.store import catalog as tables
+from rig.store.catalog import DEFAULT_PAGE, MAX_PAGE, Cursor, head_revision
+from rig.store.runs import RunStore
 
 API = "/api/v1"
 EPOCH = datetime(2026, 3, 1, tzinfo=UTC)

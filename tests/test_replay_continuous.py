@@ -19,8 +19,10 @@ import campaign
 import numpy as np
 import pytest
 
-from model.fit.parameters import get_values
-from model.fit.trajectory import (
+from model.params import HarmonicDriveModel
+from model.run import Run
+from rig.analysis.fit.parameters import get_values
+from rig.analysis.fit.trajectory import (
     SPEED_BAND_SIGMAS,
     VOLTAGE_REFINE,
     _event_intervals,
@@ -29,11 +31,9 @@ from model.fit.trajectory import (
     speed_bands,
     with_smooth_velocities,
 )
-from model.params import HarmonicDriveModel
-from model.run import Run
+from rig.analysis.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S
 from rig.config import load_rig_config
-from rig.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 FINE_STEP_S = 1e-6
 REPLAY_STEP_S = 1e-4

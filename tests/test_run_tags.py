@@ -19,7 +19,7 @@ from model.errors import UserInputError
 from rig import cli
 from rig.config import load_rig_config
 from rig.core import access
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHORT = ["--set", "speeds_rad_s=[5,20]", "--set", "hold_s=0.3"]

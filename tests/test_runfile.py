@@ -12,7 +12,7 @@ import pytest
 import scipy.io
 
 from model.run import Run
-from rig.runfile import RunFileError, read_run, sidecar_path, write_run
+from rig.store.runfile import RunFileError, read_run, sidecar_path, write_run
 
 META = {
     "sample_rate_hz": 1000.0,

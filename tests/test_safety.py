@@ -242,7 +242,7 @@ def test_set_point_beyond_saturation_is_refused_before_anything_moves(
 
 def test_a_trip_while_settling_ends_the_run_aborted_with_its_reason(tmp_path: Any) -> None:
     from rig.runner import run_experiment
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     # The rig starts at output angle 0, outside a travel that begins at 0.1 rad: the settle step trips.
     config = sim_config(limits={"travel_min_out_rad": 0.1})
@@ -254,7 +254,7 @@ def test_a_trip_while_settling_ends_the_run_aborted_with_its_reason(tmp_path: An
 
 def test_a_program_beyond_the_rig_is_refused_before_anything_moves(tmp_path: Any) -> None:
     from rig.runner import run_experiment
-    from rig.store import RunStore
+    from rig.store.runs import RunStore
 
     # A speed the drive cannot reach: refused for the whole program, not when its segment comes up.
     with pytest.raises(UserInputError, match="beyond the rig's"):

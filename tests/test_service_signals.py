@@ -32,7 +32,7 @@ from rig.config import load_rig_config
 from rig.core import access
 from rig.core.worker import WorkerState
 from rig.status import RunStatus
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 API = "/api/v1"
 REPO = Path(__file__).resolve().parents[1]

@@ -18,7 +18,7 @@ from rig.config import load_rig_config
 from rig.experiments import CAMPAIGN_ORDER, EXPERIMENTS
 from rig.experiments.base import context_from_run
 from rig.runner import REST_NOISE_FACTOR, SETTLE_MAX_S, make_params, output_motion, run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 CFG = load_rig_config("sim")

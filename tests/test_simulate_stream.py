@@ -23,7 +23,7 @@ from model.params import load_model
 from model.plant import Plant
 from model.run import RunFormatError
 from model.simulate import CHUNK_ROWS, simulate, simulate_stream
-from rig.runfile import ROW_GROUP_ROWS, RunFileWriter, read_run, write_stream
+from rig.store.runfile import ROW_GROUP_ROWS, RunFileWriter, read_run, write_stream
 
 SEED = load_model("seed")
 

@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from rig.identification.dynamics_stage import Held, Solved, carry_held, covariance, nonlinear_fit
+from rig.analysis.identification.dynamics_stage import Held, Solved, carry_held, covariance, nonlinear_fit
 
 SAMPLES = 20_000
 REPLICAS = 300

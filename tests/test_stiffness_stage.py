@@ -1,5 +1,6 @@
-"""The stiffness / load-friction stage and the kinematic-error stage are unbiased (rig.identification.
-dynamics_stage), checked on campaigns of the seed model played by the in-process sim rig.
+"""The stiffness / load-friction stage and the kinematic-error stage are unbiased
+(rig.analysis.identification.dynamics_stage), checked on campaigns of the seed model played by the
+in-process sim rig.
 
 Why these tests exist: with ideal sensors the stiffness stage put f_cl −0.44 % and b_l +0.9 % off in the
 staged chain (σ 0.17 / 1.4 %), a bias of the method, not noise. Its causes, each tested below:
@@ -34,11 +35,10 @@ import campaign
 import numpy as np
 import pytest
 
-from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel
 from model.run import Run
-from rig.config import RigConfig, Sensors, load_rig_config
-from rig.identification.dynamics_stage import (
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.identification.dynamics_stage import (
     CARRIER_TURNS,
     Solved,
     SpanMotion,
@@ -55,7 +55,8 @@ from rig.identification.dynamics_stage import (
     sweep_parts,
     window_means,
 )
-from rig.store import RunStore
+from rig.config import RigConfig, Sensors, load_rig_config
+from rig.store.runs import RunStore
 
 K_SIGMA = 3.0  # see the module docstring
 K_BIAS = 0.3  # ideal sensors' error / the rig sensors' σ, see the module docstring

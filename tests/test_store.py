@@ -19,11 +19,11 @@ import pytest
 import scipy.io
 import sqlalchemy as sa
 
-import rig.store as store_module
+import rig.store.runs as store_module
 from model.run import RunFormatError
-from rig import catalog as tables
-from rig.runfile import read_run
-from rig.store import FIRST_FLUSH_S, RunStore, UnknownRunError, default_home
+from rig.store import catalog as tables
+from rig.store.runfile import read_run
+from rig.store.runs import FIRST_FLUSH_S, RunStore, UnknownRunError, default_home
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 COLUMNS = ["t", "u", "theta_m"]
@@ -333,7 +333,7 @@ def test_running_run_of_a_live_process_stays_running(store: RunStore) -> None:
 CRASHING_WRITER = """
 import sys, time
 import numpy as np
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 writer = RunStore(sys.argv[1]).open_run("crash", "sim", "seed", "3f2a9c", ["t", "u", "theta_m"], {})
 print(writer.run_id, flush=True)

@@ -15,9 +15,9 @@ import pyarrow.parquet as pq
 import pytest
 import scipy.io
 
-import rig.store as store_module
-from rig.runfile import ROW_GROUP_ROWS, read_run
-from rig.store import MERGE_FANIN, PART_ROWS_MAX, RunStore, UnknownColumnError
+import rig.store.runs as store_module
+from rig.store.runfile import ROW_GROUP_ROWS, read_run
+from rig.store.runs import MERGE_FANIN, PART_ROWS_MAX, RunStore, UnknownColumnError
 
 COLUMNS = ["t", "u", "theta_m"]
 

@@ -12,7 +12,7 @@ import pytest
 from test_store import block, dead_pid, open_run
 
 from rig.core import access, actions
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 
 @pytest.fixture

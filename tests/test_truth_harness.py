@@ -22,7 +22,7 @@ from model import kernel as k
 from rig.experiments import EXPERIMENTS
 from rig.experiments.tracking import ZERO_WINDOW_S
 from rig.interface import ControlMode, Segment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 # Short programs: the harness is about the metrics' definitions, not long averages (all ten ~35 s here).

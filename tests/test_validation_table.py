@@ -1,4 +1,5 @@
-"""The validation table (`rig.identification.validation`) judges a model at the noise floor it states.
+"""The validation table (`rig.analysis.identification.validation`) judges a model at the noise floor it
+states.
 
 A full campaign is played on one simulated rig running the seed model, in the campaign's order, so the
 validation runs start where the experiments before them left the gear (issue 29). The seed itself must
@@ -14,11 +15,11 @@ from reference import variant
 
 from model.params import load_model
 from model.run import Run
+from rig.analysis.identification.validation import ValidationReport, start_state, validate
 from rig.config import load_rig_config
 from rig.experiments import CAMPAIGN_ORDER
-from rig.identification.validation import ValidationReport, start_state, validate
 from rig.runner import run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 CFG = load_rig_config("sim")
@@ -99,7 +100,7 @@ def test_a_replay_starts_where_the_measured_run_started(tmp_path_factory: pytest
     first state. Over the first 0.1 s the two load angles stay within 1 % of the ring's p-p (the starting
     speeds are estimated from 16 noisy samples; 0.7 % seen), where a replay from rest misses by the ring
     itself."""
-    from rig.identification.validation import _replay_experiment
+    from rig.analysis.identification.validation import _replay_experiment
 
     rig = SimRig(CFG)
     with RunStore(tmp_path_factory.mktemp("replay")) as store:

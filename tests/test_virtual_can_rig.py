@@ -34,7 +34,7 @@ from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.faults import DeviceFaultError
 from rig.interface import ControlMode, Rig, RigError, RigFaultError, Segment, open_rig
 from rig.runner import run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.cia402_twin import Cia402Twin
 from sim_backend.virtual_bus import VirtualCanRig
 

@@ -27,7 +27,7 @@ from rig.core.worker import (
 from rig.faults import DeviceFaultError
 from rig.interface import Block, ControlMode
 from rig.status import RunStatus
-from rig.store import RunStore
+from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
 WAIT_S = 120.0  # upper bound for a short simulated run on a loaded 2-core machine; never reached when well

@@ -30,9 +30,9 @@ import sqlalchemy as sa
 from pydantic import BaseModel, Field
 
 from model.errors import UserInputError
-from rig.catalog import audit as audit_table
-from rig.catalog import keys as keys_table
-from rig.store import RunStore
+from rig.store.catalog import audit as audit_table
+from rig.store.catalog import keys as keys_table
+from rig.store.runs import RunStore
 
 KEY_BYTES = 32  # 256 bits of randomness in the secret
 KEY_ID_BYTES = 8  # the key id: 16 hex digits, unique among keys, not secret

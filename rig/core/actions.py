@@ -27,7 +27,6 @@ from pydantic import ValidationError
 from model.errors import UserInputError, describe_validation_error
 from model.params import load_model, preset_names
 from model.run import Run
-from rig.catalog import DEFAULT_PAGE, Cursor, page_of_runs
 from rig.config import RigConfig
 from rig.core.documents import (
     ExperimentInfo,
@@ -48,14 +47,23 @@ from rig.experiments.base import RIG_CONTEXT, ExperimentParams, RigContext
 from rig.experiments.endurance import EnduranceParams
 from rig.faults import DeviceFaultError
 from rig.interface import ModeRefusedError, Rig
-from rig.runfile import json_text
 from rig.runner import Progress, RunHooks, RunOutcome, analyze_stored, make_params, run_experiment
 from rig.status import RunStatus
-from rig.store import ARTIFACTS_DIR, AnalysisState, RunStore, check_tags, load_runs, new_run_id, run_filter
+from rig.store.catalog import DEFAULT_PAGE, Cursor, page_of_runs
+from rig.store.runfile import json_text
+from rig.store.runs import (
+    ARTIFACTS_DIR,
+    AnalysisState,
+    RunStore,
+    check_tags,
+    load_runs,
+    new_run_id,
+    run_filter,
+)
 
 if TYPE_CHECKING:
-    from model.gaps import GapsResult
-    from rig.identification import Identification
+    from rig.analysis.gaps import GapsResult
+    from rig.analysis.identification import Identification
 
 logger = logging.getLogger(__name__)
 
@@ -396,7 +404,7 @@ def _analysis_folder(store: RunStore, kind: str, analysis_id: str | None) -> Pat
 
 
 def _runs_for(data: Sequence[str], store: RunStore, mapping: Sequence[str] | None = None) -> list[Run]:
-    from rig.importmap import parse_mapping
+    from rig.store.importmap import parse_mapping
 
     if not data:
         raise UserInputError("data: name at least one run id, run file or `latest`")
@@ -437,8 +445,8 @@ def fit(
     mapping: Sequence[str] | None = None,
 ) -> FitDocument:
     """Identify the model's parameters from runs (store ids, files or `latest`); see the module doc.
-    `mapping`: `--map` entries or mapping files for files with other column names (`rig.importmap`)."""
-    from rig.identification import identify, save_identified
+    `mapping`: `--map` entries or mapping files for files with other column names (`rig.store.importmap`)."""
+    from rig.analysis.identification import identify, save_identified
 
     start = load_model(model)
     _check_out(out)
@@ -464,7 +472,7 @@ def find_gaps(
 ) -> GapsDocument:
     """The model-gap workflow on runs; the model with the effects added (if any) is written as the
     module says."""
-    from model.gaps import find_gaps as workflow
+    from rig.analysis.gaps import find_gaps as workflow
 
     start = load_model(model)
     runs = _runs_for(data, store, mapping)
@@ -479,7 +487,7 @@ def find_gaps(
 
 def fit_document(result: Identification, folder: Path | None = None) -> FitDocument:
     """The `fit --json` document of an identification."""
-    from rig.identification.identify import FIT_METRIC
+    from rig.analysis.identification.identify import FIT_METRIC
 
     return FitDocument(
         model_file=str(result.model_file),
@@ -538,7 +546,7 @@ def trend(
 ) -> TrendDocument:
     """`hdrig trend`: the checkpoints of an endurance run, or of every run of a gear unit, against time
     and duty cycles, with the online tracker's level; `plot_dir` also gets the plots."""
-    from rig.trend import plot_trend, trend_document
+    from rig.core.trend import plot_trend, trend_document
 
     document = trend_document(store, run_id=run_id, unit=unit)
     if plot_dir is not None:

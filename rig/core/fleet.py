@@ -12,7 +12,7 @@ unit is flagged an outlier when it lies more than OUTLIER_Z robust deviations fr
 and Hoaglin's cut-off for the modified z-score). The robust deviation is 1.4826 × the median absolute
 deviation (the standard deviation for normal data), but never less than the median of the units' own 1σ:
 units that agree better than their fits can tell are not told apart by noise. Trends per unit come from
-the endurance checkpoints (`rig.trend`): each estimate's slope against time, by weighted least squares.
+the endurance checkpoints (`rig.core.trend`): each estimate's slope against time, by weighted least squares.
 """
 
 from __future__ import annotations
@@ -32,12 +32,12 @@ import sqlalchemy as sa
 from pydantic import Field
 
 from model.errors import UserInputError
-from rig.catalog import unit_fits
 from rig.core import actions
 from rig.core.documents import Document
-from rig.runfile import json_text
 from rig.status import RunStatus
-from rig.store import RunStore, new_run_id
+from rig.store.catalog import unit_fits
+from rig.store.runfile import json_text
+from rig.store.runs import RunStore, new_run_id
 
 logger = logging.getLogger(__name__)
 
@@ -284,7 +284,7 @@ def spread_of(
 
 
 def _slopes(store: RunStore, unit: str) -> list[TrendSlope]:
-    from rig.trend import trend_document
+    from rig.core.trend import trend_document
 
     try:
         trend = trend_document(store, unit=unit)

@@ -33,7 +33,7 @@ from rig.faults import DeviceFaultError
 from rig.interface import Block, ControlMode, Rig, Segment, open_rig
 from rig.runner import RunHooks
 from rig.status import RunStatus
-from rig.store import RunStore, new_run_id
+from rig.store.runs import RunStore, new_run_id
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
-"""The run store: a catalog of runs (`rig.catalog`: SQLite in the home folder, or a database URL) plus their
-time series as Parquet files (`rig.datastore`: the home folder, or object storage), and each run's artifacts
-in the home folder.
+"""The run store: a catalog of runs (`rig.store.catalog`: SQLite in the home folder, or a database URL)
+plus their time series as Parquet files (`rig.store.datastore`: the home folder, or object storage), and
+each run's artifacts in the home folder.
 
 Layout under the home folder (the data files under `$HDRIG_DATA` instead, when set):
 
@@ -55,13 +55,14 @@ import sqlalchemy as sa
 
 from model.errors import UserInputError
 from model.run import Run, RunFormatError
-from rig import catalog as tables
-from rig.catalog import STORED_STATUSES as _STORED
-from rig.catalog import Catalog, StoreError, default_url
-from rig.datastore import RunData, default_data_url
 from rig.faults import StorageFaultError
-from rig.importmap import MAPPED_SUFFIXES, ColumnSource, read_mapped
-from rig.runfile import (
+from rig.status import RunStatus
+from rig.store import catalog as tables
+from rig.store.catalog import STORED_STATUSES as _STORED
+from rig.store.catalog import Catalog, StoreError, default_url
+from rig.store.datastore import RunData, default_data_url
+from rig.store.importmap import MAPPED_SUFFIXES, ColumnSource, read_mapped
+from rig.store.runfile import (
     READ_SUFFIXES,
     ROW_GROUP_ROWS,
     RunFileWriter,
@@ -70,7 +71,6 @@ from rig.runfile import (
     read_run,
     write_parquet,
 )
-from rig.status import RunStatus
 
 STORED_STATUSES = tuple(RunStatus(s) for s in _STORED)
 """The statuses a run in the catalog can have (`queued` and `failed` runs never reached the store)."""
@@ -1194,7 +1194,7 @@ def load_runs(
 ) -> list[Run]:
     """Runs by store id, by file path, or `latest` (newest complete run of each experiment).
 
-    Files are read through a column `mapping` (`rig.importmap`) when one is given, and `.mat` files
+    Files are read through a column `mapping` (`rig.store.importmap`) when one is given, and `.mat` files
     always (with an empty mapping, their run-format columns as they are)."""
     store = store or RunStore()
     runs: list[Run] = []

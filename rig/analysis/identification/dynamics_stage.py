@@ -2,7 +2,8 @@
 
 Each stage is a pure function of runs (model.run.Run with their metadata) and the current model, and
 returns `Solved`: values with covariance-based standard errors and notes. Which parameters are then
-believed, and the bookkeeping of the model, is `rig.identification.staged`'s business. This module also
+believed, and the bookkeeping of the model, is `rig.analysis.identification.staged`'s business.
+This module also
 holds the small tools all stages share (least squares with standard errors, a run's context, window
 averages).
 
@@ -27,11 +28,11 @@ from scipy.optimize import least_squares
 from scipy.stats import t as student_t
 
 from model import kernel as k
-from model.fit.parameters import get_values, with_values
-from model.fit.trajectory import SPEED_BAND_SIGMAS, position_noise, window_robust_covariance
 from model.params import N_FOURIER, HarmonicDriveModel
 from model.plant import kernel_vectors
 from model.run import Run
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.fit.trajectory import SPEED_BAND_SIGMAS, position_noise, window_robust_covariance
 from rig.config import RigConfig
 from rig.experiments.base import RigContext, segments_of
 from rig.experiments.chirp import ChirpParams, frf_tables

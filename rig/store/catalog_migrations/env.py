@@ -1,4 +1,4 @@
-"""Alembic's entry: migrations run on the connection `rig.catalog.Catalog` opened (and locked)."""
+"""Alembic's entry: migrations run on the connection `rig.store.catalog.Catalog` opened (and locked)."""
 
 from __future__ import annotations
 

@@ -3,7 +3,8 @@
 SQLite in the store's home (`catalog.sqlite`) is the default, with nothing to install; `HDRIG_CATALOG`
 (`postgresql://user@host/db`, or any SQLAlchemy URL) puts the catalog of many rigs in one database.
 Queries are SQLAlchemy Core on the tables below; the schema is made and upgraded by Alembic migrations
-(`rig/catalog_migrations/versions/`), run when a store opens a catalog older than this code, under a lock
+(`rig/store/catalog_migrations/versions/`), run when a store opens a catalog older than this code,
+under a lock
 (an advisory lock on PostgreSQL, SQLite's write lock), so services starting together migrate once. A
 catalog from before the migrations (no `alembic_version` table) is upgraded in place: the first migration
 creates only what is missing.

@@ -37,9 +37,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from model.errors import UserInputError
-from model.fit.parameters import get_values, with_values
-from model.fit.trajectory import ParameterEstimate
-from model.gaps.effects import (
+from model.params import HarmonicDriveModel, save_model
+from model.run import Run
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.fit.trajectory import ParameterEstimate
+from rig.analysis.gaps.effects import (
     SYSTEMATIC,
     Candidate,
     Context,
@@ -49,11 +51,9 @@ from model.gaps.effects import (
     screen_stribeck,
     signature,
 )
-from model.gaps.residual import Residual, one_step_residual
-from model.gaps.shooting import METRIC, EffectFit, Shooting, fit_on_windows
-from model.gaps.signals import SMOOTHING_S, Signals, cut_windows, prepare
-from model.params import HarmonicDriveModel, save_model
-from model.run import Run
+from rig.analysis.gaps.residual import Residual, one_step_residual
+from rig.analysis.gaps.shooting import METRIC, EffectFit, Shooting, fit_on_windows
+from rig.analysis.gaps.signals import SMOOTHING_S, Signals, cut_windows, prepare
 
 Progress = Callable[[str, float], None]
 """Called with what is being done and the fraction of the job done, 0..1 (as `rig.runner.Progress`)."""
@@ -468,7 +468,7 @@ def find_gaps(
         rejected=rejected,
     )
     if report_dir is not None:
-        from model.gaps.report import write_report
+        from rig.analysis.gaps.report import write_report
 
         say("writing the report", 0.98)
         result.report = write_report(result, signals, shooting, Path(report_dir), opts)

@@ -8,7 +8,7 @@ output angle divided by r when it is measured (both in radians at the motor). Th
 function of time since the run's start) and the unseen states (hysteresis element, bristles) tracked
 along the data by the one-step pass.
 
-The fit is `model.fit.trajectory`'s least squares and uncertainty on this residual: the cost is the
+The fit is `rig.analysis.fit.trajectory`'s least squares and uncertainty on this residual: the cost is the
 gap itself on the training windows (the held-out windows judge the result), with tied parameters
 (`f_sl` follows `f_cl`) kept valid.
 """
@@ -23,13 +23,13 @@ import numpy as np
 
 from model import kernel as k
 from model.errors import UserInputError
-from model.fit.parameters import with_values
-from model.fit.trajectory import ParameterEstimate, TrajectoryProblem, solve
-from model.gaps.residual import one_step_residual
-from model.gaps.signals import Signals, Window
 from model.params import HarmonicDriveModel
 from model.plant import Plant
 from model.simulate import replay_rows
+from rig.analysis.fit.parameters import with_values
+from rig.analysis.fit.trajectory import ParameterEstimate, TrajectoryProblem, solve
+from rig.analysis.gaps.residual import one_step_residual
+from rig.analysis.gaps.signals import Signals, Window
 
 METRIC = (
     "RMS error of the motor angle (and of the output angle / r, when measured) over shooting windows"

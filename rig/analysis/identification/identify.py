@@ -15,15 +15,15 @@ from typing import Any
 import numpy as np
 
 from model.errors import UserInputError
-from model.fit.parameters import get_values, with_values
-from model.fit.trajectory import CHANNELS, TrajectoryFit, TrajectoryProblem, fit_problem
 from model.params import HarmonicDriveModel, save_model
 from model.run import Run
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.fit.trajectory import CHANNELS, TrajectoryFit, TrajectoryProblem, fit_problem
+from rig.analysis.identification.column_stage import axis_figures, plan_for_plain_runs, seeded_model
+from rig.analysis.identification.staged import REQUIRED_META, staged_estimates
+from rig.analysis.identification.validation import ValidationReport, validate
 from rig.experiments.base import segments_of
 from rig.experiments.pulse import STAIR_PREFIX
-from rig.identification.column_stage import axis_figures, plan_for_plain_runs, seeded_model
-from rig.identification.staged import REQUIRED_META, staged_estimates
-from rig.identification.validation import ValidationReport, validate
 
 JOINT_CANDIDATES = ("s3", "k_v", "static_factor", "K_s", "J_m", "J_l", "f_cl", "b_l")
 """Parameters the joint refinement may move (when the staged fit found them determined): those that

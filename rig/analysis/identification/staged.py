@@ -32,11 +32,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from model.errors import UserInputError
-from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel
 from model.plant import Plant
 from model.run import Run
-from rig.identification.dynamics_stage import (
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.identification.dynamics_stage import (
     Held,
     Solved,
     frequency_response,
@@ -48,7 +48,7 @@ from rig.identification.dynamics_stage import (
     stiffness_names,
     sweep_parts,
 )
-from rig.identification.friction_stage import (
+from rig.analysis.identification.friction_stage import (
     FOURIER_NAMES,
     breakaway,
     position_friction,

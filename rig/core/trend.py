@@ -12,7 +12,7 @@ from pathlib import Path
 from model.errors import UserInputError
 from rig.core.documents import TrackPoint, TrendDocument, TrendPoint
 from rig.experiments.plots import new_figure, save_figure
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 _ESTIMATES = ("coulomb", "viscous", "stiffness")
 

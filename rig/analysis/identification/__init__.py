@@ -5,13 +5,14 @@ analyses (steady windows, FRFs, segment labels) and replays validation runs on a
 
 - `staged`, `dynamics_stage`, `friction_stage`: one MODEL.md equation per stage, by least squares on
   the runs, to a starting point with standard errors;
-- `identify`: the staged estimates, the joint refinement on trajectories (`model.fit.trajectory`),
+- `identify`: the staged estimates, the joint refinement on trajectories (`rig.analysis.fit.trajectory`),
   the report; what `hdrig fit` and the service call;
 - `validation`: the article's validation table, model beside measurement.
 
-The pure least squares on runs (`model.fit.parameters`, `model.fit.trajectory`) stays in `model`.
+The pure least squares on runs (`rig.analysis.fit.parameters`, `rig.analysis.fit.trajectory`) lives beside
+it, in `rig.analysis.fit`.
 """
 
-from rig.identification.identify import Identification, ParameterRow, identify, save_identified
+from rig.analysis.identification.identify import Identification, ParameterRow, identify, save_identified
 
 __all__ = ["Identification", "ParameterRow", "identify", "save_identified"]

@@ -32,11 +32,11 @@ from scipy.signal import savgol_coeffs, savgol_filter
 
 from model import kernel as k
 from model.errors import UserInputError
-from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel
 from model.plant import INPUT_COLUMN, InputMode, Plant
 from model.run import Run
 from model.simulate import replay_mode, replay_rows, substeps
+from rig.analysis.fit.parameters import get_values, with_values
 
 CHANNELS = {"theta_m": k.OUT_THETA_M, "theta_l": k.OUT_THETA_L}
 """Positions only: a drive's speed is a filtered encoder difference, which the true speed of the model

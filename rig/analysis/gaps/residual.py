@@ -22,9 +22,9 @@ import numpy as np
 from numba import njit
 
 from model import kernel as k
-from model.gaps.signals import Signals
 from model.params import HarmonicDriveModel
 from model.plant import MODES, Plant, kernel_vectors
+from rig.analysis.gaps.signals import Signals
 
 """Kernel states the data do not show (bristles, hysteresis element), tracked along the data."""
 

@@ -30,7 +30,7 @@ from rig.experiments.base import Results, RigContext, context_from_run
 from rig.experiments.plots import new_figure, save_figure
 from rig.interface import open_simulated_rig
 from rig.runner import make_params, run_experiment
-from rig.store import RunStore
+from rig.store.runs import RunStore
 
 VALIDATION_EXPERIMENTS = ("step", "sine", "ramp", "chirp")
 

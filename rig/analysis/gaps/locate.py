@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import welch
 
-from model.gaps.residual import Residual
-from model.gaps.signals import Signals, spread
+from rig.analysis.gaps.residual import Residual
+from rig.analysis.gaps.signals import Signals, spread
 
 CHANNEL_UNITS = {"motor": "N·m", "load": "N·m at the output", "load_position": "rad at the output"}
 REVERSAL_S = 0.05  # "near a reversal": within this time of a change of direction

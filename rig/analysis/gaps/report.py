@@ -19,14 +19,14 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from model import kernel as k
-from model.gaps.locate import ANGLE_BINS, CHANNEL_UNITS, SPEED_EDGES, Where, locate
-from model.gaps.residual import one_step_residual
-from model.gaps.shooting import Shooting
-from model.gaps.signals import Signals
-from model.gaps.workflow import GapOptions, GapsResult
 from model.params import HarmonicDriveModel
 from model.plant import Plant
 from model.simulate import replay_rows
+from rig.analysis.gaps.locate import ANGLE_BINS, CHANNEL_UNITS, SPEED_EDGES, Where, locate
+from rig.analysis.gaps.residual import one_step_residual
+from rig.analysis.gaps.shooting import Shooting
+from rig.analysis.gaps.signals import Signals
+from rig.analysis.gaps.workflow import GapOptions, GapsResult
 
 
 def _where(model: HarmonicDriveModel, signals: list[Signals], channel: str, dt_s: float) -> Where:

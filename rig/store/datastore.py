@@ -5,7 +5,7 @@ endpoint and credentials come from the usual AWS settings: `AWS_ENDPOINT_URL`, `
 Under it, `runs/<id>/` holds a run's part, merged and sealed Parquet files, as in the home folder.
 
 The crash-safety promise holds on both: a file appears whole or not at all. A local file is written under
-a temporary name and renamed into place (`rig.runfile`); an object is written to a local temporary file
+a temporary name and renamed into place (`rig.store.runfile`); an object is written to a local temporary file
 and uploaded with one PUT (a multipart upload for large files), which the object store makes visible only
 once complete, so a process killed mid-upload leaves nothing under the file's name.
 """
@@ -23,7 +23,7 @@ from typing import Any
 import fsspec
 import pyarrow.parquet as pq
 
-from rig.catalog import StoreError
+from rig.store.catalog import StoreError
 
 RUNS_DIR = "runs"
 

@@ -20,11 +20,11 @@ from typing import Any
 import numpy as np
 
 from model import kernel as k
-from model.fit.parameters import get_values
-from model.gaps.locate import CHANNEL_UNITS
-from model.gaps.residual import Residual
-from model.gaps.signals import Signals
 from model.params import N_FOURIER, HarmonicDriveModel
+from rig.analysis.fit.parameters import get_values
+from rig.analysis.gaps.locate import CHANNEL_UNITS
+from rig.analysis.gaps.residual import Residual
+from rig.analysis.gaps.signals import Signals
 
 FOLDS = 5
 FOLD_BLOCK_S = 0.5

@@ -8,7 +8,7 @@ read it. Its columns still say a lot:
 - `theta_l` says whether the load side is seen: without it a flexible model's J_l, K_s and load
   friction do not show in θ_m well enough to be told apart from the motor side's, and are held;
 - the motor torque, known from the input (K_m·i, or τ_m), against the filtered motion gives the plain
-  inverse-model least squares (`model.fit.inverse`): the axis' inertia and its Coulomb and viscous
+  inverse-model least squares (`rig.analysis.fit.inverse`): the axis' inertia and its Coulomb and viscous
   friction, a starting point near the truth for an axis the start model knows nothing about.
 
 The trajectory least squares then refines the parameters `free_parameters` lists on shooting windows.
@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from model.errors import UserInputError
-from model.fit.inverse import InverseFit, inverse_model_fit
-from model.fit.parameters import get_values, with_values
 from model.params import HarmonicDriveModel
 from model.run import Run
-from rig.identification.dynamics_stage import back_emf_fit
+from rig.analysis.fit.inverse import InverseFit, inverse_model_fit
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.identification.dynamics_stage import back_emf_fit
 
 LAW_FRICTION = {
     "article": ["s3", "k_v", "static_factor"],

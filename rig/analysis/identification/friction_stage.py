@@ -1,7 +1,8 @@
 """Staged identification, motor friction: against position, against velocity, and at breakaway.
 
 Pure functions of runs and the current model, each returning `Solved` (values, standard errors, notes);
-`rig.identification.staged` decides what to believe. The model's own friction (`Plant.steady_friction`,
+`rig.analysis.identification.staged` decides what to believe. The model's own friction
+(`Plant.steady_friction`,
 `Plant.breakaway_friction`) is evaluated for every sample, so every law and effect the kernel knows is
 fitted with the kernel's equations, not a second copy of them.
 """
@@ -16,12 +17,11 @@ import numpy as np
 
 from model import kernel as k
 from model.errors import UserInputError
-from model.fit.parameters import get_values, with_values
 from model.params import N_FOURIER, HarmonicDriveModel
 from model.plant import Plant
 from model.run import Run
-from rig.experiments.position_friction import fourier_basis, quadratic_fourier_fit, steady_samples
-from rig.identification.dynamics_stage import (
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.identification.dynamics_stage import (
     Held,
     Solved,
     SpanMotion,
@@ -38,6 +38,7 @@ from rig.identification.dynamics_stage import (
     spring_torque,
     window_means,
 )
+from rig.experiments.position_friction import fourier_basis, quadratic_fourier_fit, steady_samples
 
 MIN_STUCK_S = 0.02
 """Shortest span of an unchanged motor encoder reading that counts as stuck [s]."""
