@@ -42,8 +42,8 @@ meets zero speed error. Switching a track on or off is a mode change (RPDO 1 gai
 `supports_feedforward` says whether the drive can do either; a segment with a track on a drive that
 cannot is refused in one line naming what it lacks.
 
-The rig does not touch the garbage collector, whose full collections would stall the loop for
-50-80 ms: that is a policy of the process that owns the loop (`rig.realtime.quiet_heap`).
+The rig does not touch the garbage collector, whose full collections would stall the loop for many
+periods: that is a policy of the process that owns the loop (`rig.realtime.quiet_heap`).
 
 Every cycle the rig envelope is checked (`rig.safety.envelope_breach`) with the measured values, and
 the chunk ends at the first breach. A drive that faults or leaves OPERATION ENABLED on its own, or
@@ -96,18 +96,18 @@ RAW_CAN_LOG: Final = "raw_can.blf"
 CLOCK_EXCHANGES_AT_START: Final = 16
 CLOCK_EXCHANGES_WHILE_STREAMING: Final = 4
 DAQ_DRAIN_CYCLES: Final = 25
-"""The samples decoded are taken every this many cycles, in the period's slack: making a block costs
-~30 µs of CPU however few frames it holds, ~3.5 µs more per frame (measured on a 2-core EPYC VM), and
-on a shared CPU the loop's own work is what delays the drive's next answer."""
+"""The samples decoded are taken every this many cycles, in the period's slack: making a block has a
+fixed CPU cost however few frames it holds, and on a shared CPU the loop's own work is what delays the
+drive's next answer (figures: docs/BENCHMARKS.md, "Figures behind design choices in the code")."""
 DAQ_DRAIN_WITHIN_S: Final = 400e-6
 """Paced, the samples are taken only in a cycle answered within this of its SYNC (else in a later one,
-or at the chunk's end): taking them cost 0.2-0.45 ms of wall time on a shared 2-core VM (measured), and
-two thirds of the cycles late for the 1 ms period were the ones that took them after a late answer."""
+or at the chunk's end): taking them costs a good part of the period on a loaded machine, and most of the
+cycles late for the period were the ones that took them after a late answer (figures: docs/BENCHMARKS.md)."""
 ALIGN_MARGIN_S: Final = 800e-6
 """Paced, what a chunk's end keeps of the period, after the wait for the DAQ, to interpolate: the work
-after the wait took 0.33 ms of CPU at p50 and 0.63 ms at most on a shared 2-core VM (measured), on top of
-the drive's answer (0.3 ms at p50), so the wait is short; the rows it misses are extrapolated (1-2 per
-chunk end at 2 kHz, as many as with a 0.5 ms margin: the DAQ's frames come every 2 ms)."""
+after the wait needs most of it on top of the drive's answer, so the wait is short; the rows it misses
+are extrapolated (no more than with a shorter margin: the DAQ's frames come every 2 ms; figures:
+docs/BENCHMARKS.md, "Figures behind design choices in the code")."""
 EXTRAPOLATE_MAX_PERIODS: Final = 2
 """Paced, rows at most this many periods past the newest DAQ sample are extrapolated, plus the time
 between the DAQ's frames (the newest sample can be that old on arrival); further, the chunk's end
@@ -303,7 +303,7 @@ class HardwareRig(Rig):
     ) -> None:
         super().__init__(config)
         # Load the compiled envelope check before the bus is up: compiling it on the first cycle would
-        # stall the loop (and the heartbeats of a twin in this process) for up to a second.
+        # stall the loop (and the heartbeats of a twin in this process) for many periods.
         envelope_breach(limits_vector(config.limits, 1.0), 0.0, 0.0, 0.0, 0.0, 0.0)
         self.servo = servo if servo is not None else CanopenServo.from_rig_config(config)
         self.daq = daq

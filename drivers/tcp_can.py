@@ -124,8 +124,8 @@ class _LocalBus(can.BusABC):
     def deliver_directly(self, listeners: Sequence[can.Listener]) -> None:
         """From now on, hand every frame to `listeners` (a canopen network's `listeners`) in the thread
         of the hub that reads it from its client, instead of queueing it for this bus's notifier thread:
-        each frame spares that thread's wake-up (~25 µs median, 67 µs p99 measured on the 2-core VM
-        between the hub's reader and the drive twin's SYNC handler), on the path of the drive's answer.
+        each frame spares that thread's wake-up (between the hub's reader and the drive twin's SYNC
+        handler), on the path of the drive's answer.
 
         Only for the hub's one bus in this process (the twins' process), before any client connects
         (the hub then makes no other): every frame it gets comes from a client's reader thread, handed

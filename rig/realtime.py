@@ -2,8 +2,8 @@
 where the OS allows it, a real-time scheduling class.
 
 CPython's cyclic garbage collector, in a full collection, walks every tracked object of the interpreter
-with the GIL held. With numba, scipy and canopen's object dictionaries loaded that is ~10⁵ objects and
-50-80 ms: long enough to stall the SYNC grid, time out the drive's answer (a `SyncTimeoutError`) and,
+with the GIL held. With numba, scipy and canopen's object dictionaries loaded that takes many periods of
+the loop: long enough to stall the SYNC grid, time out the drive's answer (a `SyncTimeoutError`) and,
 with the twins in the same process, let their heartbeat watch see a dead host. `quiet_heap()` collects
 once and freezes what exists (`gc.freeze`), so that collections during the run walk only what the run
 makes; on leaving, the frozen objects are handed back to the collector (`gc.unfreeze`).
@@ -48,8 +48,9 @@ def freeze_built() -> None:
     """Inside `quiet_heap()`: collect, then keep the collector off what was built since it was entered.
 
     For a process that enters `quiet_heap()` first and builds what serves its loop inside it, such as
-    the twins' process: a twin built from an EDS is ~63,000 tracked objects, and one full collection of
-    them took 26 ms (measured), 26 SYNCs unanswered. `quiet_heap()`'s last exit unfreezes them too.
+    the twins' process: a twin built from an EDS holds tens of thousands of tracked objects, and a full
+    collection of them leaves SYNCs unanswered for tens of periods (figures: docs/BENCHMARKS.md, "Figures
+    behind design choices in the code"). `quiet_heap()`'s last exit unfreezes them too.
     """
     with _lock:
         if not _holders[0]:
@@ -64,10 +65,10 @@ def realtime_scheduling(priority: int = 10, cpu: int | None = None) -> str:
 
     Call it first thing in the process that owns the loop, before it starts threads or children: on
     Linux they inherit both, so the bus's receive thread, the DAQ reader and a twins' child process run
-    ahead of ordinary work too. A busy machine then no longer holds the loop back (measured: a 1 ms
-    sleep woke up to 140 ms late with two CPU hogs on 2 cores). One CPU for the loop and the twins
-    spares each exchange the wake-up of another CPU (on the 2-core VM measured here: SYNC → answer
-    p50 0.47 → 0.32 ms). The kernel keeps 5 % of each second for ordinary work
+    ahead of ordinary work too. A busy machine then no longer holds the loop back, where an ordinary
+    thread's sleep may wake many periods late. One CPU for the loop and the twins spares each exchange
+    the wake-up of another CPU, which shortens the drive's answer (figures: docs/BENCHMARKS.md, "Figures
+    behind design choices in the code"). The kernel keeps 5 % of each second for ordinary work
     (sched_rt_runtime_us), so a thread that never blocks cannot freeze the machine. Never raises:
     without the permission (CAP_SYS_NICE or an rtprio limit) it says so and changes nothing.
     """

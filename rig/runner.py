@@ -52,9 +52,9 @@ APPROACH_HOLD_S = 0.05
 """After the move, the approach holds the turn in position mode in stretches of this length [s] ..."""
 APPROACH_HOLD_MAX_S = 4.0
 """... until the motor is within APPROACH_COUNTS encoder counts of the turn, at most this long [s]: the
-position loop's P stalls on the motor's friction a few mrad off (4 mrad on the seed), and the speed loop's
-integral, fed by that error, takes it the rest of the way; a motor still off then is said so in the run's
-metadata (`approach`) and the program starts anyway."""
+position loop's P stalls on the motor's friction a few mrad off, and the speed loop's integral, fed by
+that error, takes it the rest of the way; a motor still off then is said so in the run's metadata
+(`approach`) and the program starts anyway."""
 UNLOAD_S = 0.2
 """Time of the speed set-point that unloads the speed loop's integral after the approach [s]."""
 UNLOAD_WINDOW_S = 0.02
@@ -247,7 +247,8 @@ def _approach_turn(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> A
     freshly started rig does, whatever ran before it. Not only the turn's phase counts (the kinematic
     error and the friction's ripple repeat every motor turn), also which turn: the friction's slow level
     C(θ_m) is a polynomial over the stroke, and a step started one turn up (the nearest turn after the
-    campaign's earlier experiments) overshot 1.1 % more than one started at 0. The move is half a
+    campaign's earlier experiments) overshot measurably more than one started at 0 (figures:
+    docs/BENCHMARKS.md, "Figures behind design choices in the code"). The move is half a
     cosine, at most APPROACH_SPEED_RAD_S; then the position loop holds the turn, in stretches of
     APPROACH_HOLD_S, until the motor is within `approach_tolerance_rad` of it (at most
     APPROACH_HOLD_MAX_S, what is left said in the run's metadata); then the current left in the speed
@@ -295,8 +296,8 @@ def _unload_speed_integral(rig: Rig, tail: _Tail) -> tuple[float, SegmentResult]
     current held before (0 if nothing was done) and how the segment ended.
 
     The approach's hold leaves the motor stuck with the current that broke it free still in the
-    integral (near the static friction's level, 2.6 A on the seed), where a run on a freshly enabled
-    drive starts from 0; a step started so overshot 1 % more. At rest (ω = 0 over UNLOAD_WINDOW_S) that
+    integral (near the static friction's level), where a run on a freshly enabled drive starts from 0;
+    a step started so overshot measurably more. At rest (ω = 0 over UNLOAD_WINDOW_S) that
     integral is the commanded current i, and a speed set-point ω_ref moves it by K_i·∫ω_ref dt while the
     motor stays stuck: a half-sine of speed against i, of area −i/K_i over UNLOAD_S, takes it to 0
     (`unload`). The current then moves only towards zero, away from the breakaway level, so the motor

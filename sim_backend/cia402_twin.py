@@ -108,8 +108,9 @@ LOAD_COB_ID: Final = 0x6E0
 float64, applied from the next SYNC. A host in another process sets the load with it."""
 WATCH_PERIOD_S: Final = 0.005  # heartbeat consumer resolution
 WATCH_STALLED_S: Final = 0.1
-"""A watch wake-up this late means the watch itself was held: 10 × the p99 lateness of a 1 ms sleep
-measured with both cores busy (9.9 ms; max 114-140 ms), so a starved but running twin still judges."""
+"""A watch wake-up this late means the watch itself was held: about 10 × the p99 lateness of a 1 ms
+sleep with both cores busy (figures: docs/BENCHMARKS.md, "Figures behind design choices in the code"),
+so a starved but running twin still judges."""
 STANDSTILL_RAD_S: Final = 0.5  # a quick stop ends, PV reports zero speed, below this [rad/s]
 PV_REACHED_RAD_S: Final = 2.0  # PV target reached within this [rad/s]
 _INT16, _INT32 = (1 << 15) - 1, (1 << 31) - 1

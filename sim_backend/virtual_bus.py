@@ -65,11 +65,11 @@ from sim_backend.twin_process import PlantLog, serve_twins, watchdog_grace_s
 TWINS: Final = ("in-process", "process")
 """The rig file's `twins:`: in this process (threads), or in a child process on a loopback TCP bus."""
 CHILD_START_TIMEOUT_S: Final = 240.0
-"""The child imports numpy, numba and canopen and loads the drive's compiled loop: 0.6 s of CPU, 0.76 s
-in SCHED_FIFO, 3.5-10.8 s wall with two CPU hogs on 2 cores (load 11, measured). After a change to a
-compiled kernel it compiles it first, as a twin in this process would: 78 s from an empty numba cache
-at load 10 (measured; 30 s ran out twice when another engineer's kernel change invalidated the
-cache). About 3 × the cold start: a child that is merely slow is not taken for a dead one."""
+"""The child imports numpy, numba and canopen and loads the drive's compiled loop: under a second on a
+quiet machine, several times that on a loaded one. After a change to a compiled kernel it compiles it
+first, as a twin in this process would, which on a loaded machine can take over a minute. About 3 × the
+slowest cold start measured (figures: docs/BENCHMARKS.md, "Figures behind design choices in the code"):
+a child that is merely slow is not taken for a dead one."""
 
 
 class DaqTwinSettings(DaqStreamSettings):

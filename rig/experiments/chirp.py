@@ -12,15 +12,16 @@ loop's transient), then `periods` whole periods are analyzed. Why so:
   one sign: a bias, not the stick nonlinearity that would swamp the small signal;
 - a periodic excitation analyzed over whole periods (rectangular windows of one period, no overlap)
   has no leakage and every window holds every line, so the coherence measures disturbance and
-  nonlinearity, not the windowing of a one-shot sweep (with which a linear plant showed γ² ≈ 0.85);
+  nonlinearity, not the windowing of a one-shot sweep (which kept a linear plant's coherence low);
 - line amplitudes fall as f^(−amp_exponent), by default f^(−3/4), between a logarithmic sweep's
   f^(−1/2) and constant acceleration's f^(−1): more excitation where the current it asks
   (~2π·f·J·amplitude) is small against friction, less at the load resonance, where the position loop
-  drives an almost undamped load (the seed asks ~6 A at most, under the drive's 10 A);
+  drives an almost undamped load (on the seed the current asked stays under the drive's limit);
 - the position-dependent friction is a torque that follows θ_m, which follows the reference: over
   periods that each span the same motor turns it would repeat with the excitation and bias every line
-  in a way coherence cannot show (4–6 dB below 6 Hz on the seed). So the mean speed is moved to the
-  nearest at which a period spans whole motor turns plus 1/`periods` of a turn (`sweep_mean_speed`):
+  in a way coherence cannot show (by several dB at low frequencies on the seed). So the mean speed is
+  moved to the nearest at which a period spans whole motor turns plus 1/`periods` of a turn
+  (`sweep_mean_speed`):
   each friction harmonic starts each period 1/`periods` of its cycle further on and its response sums
   to zero over the periods (harmonics that are multiples of `periods` excepted); the slow Coulomb
   level C(θ_m), quadratic in θ_m along the ramp, is taken out as a polynomial trend in time
@@ -28,8 +29,9 @@ loop's transient), then `periods` whole periods are analyzed. Why so:
   slope against position (a small spring) cancels between the sweeps;
 - a barely damped mode (the seed's load with its motor held by the loop, J_l/b_l = 4 s) still rings
   from the speed-up and the lead-in through the analyzed periods: not periodic, on no line, that ring
-  leaks into every line of a period's DFT (−2 to +8 dB over 1–10 Hz on a linear plant). It is fitted
-  as a decaying sinusoid beside the trend and taken out with it (`periodic_records`, `ring_mode`).
+  leaks into every line of a period's DFT (by several dB on a linear plant; figures: docs/BENCHMARKS.md,
+  "Campaign start and the chirp's ring"). It is fitted as a decaying sinusoid beside the trend and taken
+  out with it (`periodic_records`, `ring_mode`).
 
 Estimated at the excitation's lines from the DFTs of each analyzed period (trend taken out), the
 reference r being the output set-point with the mean-speed ramp taken out (of it and of θ_l alike), so

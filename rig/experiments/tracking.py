@@ -385,7 +385,8 @@ class RampParams(ExperimentParams):
     )
     # Stuck means still, not slow: 5 % of the ramp speed is 1e-4 rad/s at the output, ~4 σ of the speed
     # that the 41-sample derivative makes of 2 µrad load-sensor noise, and far below the dips of a
-    # frictionless motor rocked by the load mode (those reach ~10 %).
+    # frictionless motor rocked by the load mode (figures: docs/BENCHMARKS.md, "Figures behind design
+    # choices in the code").
     stick_speed_fraction: float = Field(
         default=0.05, gt=0, lt=1, description="a side is stuck below this share of its ramp speed [–]"
     )
