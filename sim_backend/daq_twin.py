@@ -62,8 +62,8 @@ _SAMPLE = struct.Struct("<iiB")  # SAMPLE_DTYPE's bytes: encoder, cap, status
 def _yield_to_the_loop() -> None:
     """In a real-time process (`rig.realtime.realtime_scheduling`: SCHED_FIFO, inherited by every thread),
     put the calling thread one priority below the others. On a bench the DAQ board is a machine of its
-    own; here, at the same priority on the one CPU, its thread, woken first, ran its frame (~100 µs with
-    the socket write) before the drive twin's answer to a SYNC or the host's handling of it."""
+    own; here, at the same priority on the one CPU, its thread, woken first, ran its frame (with the
+    socket write) before the drive twin's answer to a SYNC or the host's handling of it."""
     if not hasattr(os, "sched_getscheduler") or os.sched_getscheduler(0) != os.SCHED_FIFO:
         return
     priority = os.sched_getparam(0).sched_priority
@@ -76,11 +76,11 @@ class PlantStateSource:
 
     The stepper calls `record(t_host_s)` after each step (t: when the step's SYNC was taken); a sample
     gets the state last recorded at or before its time, or the present state before any record. The
-    DAQ twin's thread can fall behind its sample clock on a loaded machine (measured: stalls of up to
-    140 ms with both cores busy) and then sends every due frame at once; each still carries the state
-    of its own time, as a board sampling in hardware does. Reading the present state instead would date
-    it back to the stalled samples' times, an alignment error the host's drivers did not make. The DAQ
-    twin asks at host times (`source_clock="host"`).
+    DAQ twin's thread can fall behind its sample clock on a loaded machine (stalled for many periods
+    with both cores busy; figures: docs/BENCHMARKS.md) and then sends every due frame at once; each
+    still carries the state of its own time, as a board sampling in hardware does. Reading the present
+    state instead would date it back to the stalled samples' times, an alignment error the host's
+    drivers did not make. The DAQ twin asks at host times (`source_clock="host"`).
     """
 
     HISTORY: Final = 1024
@@ -539,8 +539,7 @@ class DaqTwin:
 
     def _frame(self, seq: int) -> bytes:
         # Plain float math per sample: for a frame of a few samples numpy's per-call overhead was most of
-        # the cost (measured 44 -> 14 µs for a frame of 4 samples, the source lookup included), paid
-        # on the CPU that the 1 kHz loop waits for.
+        # the cost, paid on the CPU that the 1 kHz loop waits for.
         n, period = self.samples_per_frame, self.period_us
         t0_us = self._first_us + seq * n * period
         theta_m, theta_l = self._source_at([(t0_us + j * period) * 1e-6 for j in range(n)])
