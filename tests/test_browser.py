@@ -22,7 +22,7 @@ import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -49,7 +49,7 @@ CHROMIUM_ARGS = [
 SERVICE_START_S = 60.0  # a cold start imports numpy, numba's kernels, matplotlib...
 FIRST_POINTS_S = 15.0  # the worker opens the rig and the first 0.25 s block is published
 STOP_S = 10.0  # quick stop: the motor coasts to rest and the run is sealed
-RECORD_S = 120.0  # a CLI sweep on the virtual-time rig: a cold start and ~5 s of simulation
+RECORD_S = 300.0  # a CLI run on the virtual-time rig (a cold start, ~5 s of simulation), four side by side
 ANALYSIS_S = 120.0  # a fit of one sweep (~16 s here) and a gap analysis (~22 s), one after the other
 UNIT = "HD-BROWSER-1"  # the gear unit the recorded sweeps were made on: its trend has both
 WIDTHS = (360, 1280, 1920)  # a phone, a lab PC, a wide lab monitor
@@ -74,6 +74,7 @@ class Service:
     process: subprocess.Popen[bytes]
     log: Path
     sweeps: list[str]  # finished speed sweeps in the store before the service started
+    others: dict[str, str] = field(default_factory=dict)  # experiment → a finished run of it (step, chirp)
 
     def get(self, path: str) -> object:
         request = urllib.request.Request(self.url + path, headers={"Authorization": f"Bearer {self.key}"})
@@ -102,9 +103,9 @@ def _wait_healthy(url: str, process: subprocess.Popen[bytes], log: Path) -> None
     pytest.fail(f"hdrig serve not healthy within {SERVICE_START_S:.0f} s:\n{log.read_text()}")
 
 
-def _record(env: dict[str, str], *settings: str) -> subprocess.Popen[str]:
+def _record(env: dict[str, str], *settings: str, experiment: str = "speed-sweep") -> subprocess.Popen[str]:
     """A run recorded by the CLI on the virtual-time sim rig (seconds, not a bench's minutes)."""
-    args = [str(HDRIG), "run", "speed-sweep", "--rig", "sim", "--unit", UNIT, "--json", "-q"]
+    args = [str(HDRIG), "run", experiment, "--rig", "sim", "--unit", UNIT, "--json", "-q"]
     for setting in settings:
         args += ["--set", setting]
     return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -140,7 +141,9 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     key = made.stdout.strip()
     assert key, "hdrig keys create printed no key"
     recording = [_record(env), _record(env, "speeds_rad_s=[1,10,100]", "hold_s=0.3")]  # side by side
-    sweeps = [_recorded(process) for process in recording]
+    recording += [_record(env, experiment="step"), _record(env, "periods=2", experiment="chirp")]
+    step, chirp = [_recorded(process) for process in recording[2:]]
+    sweeps = [_recorded(process) for process in recording[:2]]
 
     port = _free_port()
     log = tmp_path / "serve.log"
@@ -154,7 +157,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     url = f"http://127.0.0.1:{port}"
     try:
         _wait_healthy(url, process, log)
-        yield Service(url, key, process, log, sweeps)
+        yield Service(url, key, process, log, sweeps, {"step": step, "chirp": chirp})
     finally:
         process.terminate()
         try:
@@ -488,5 +491,53 @@ def test_results_render_in_the_page_at_every_width(browser: object, service: Ser
         page.evaluate("() => document.querySelector('#job-results').scrollIntoView()")
         _shot(page, "analyses")
         _shot(page, "page", full_page=True)
+    assert page_errors == []
+    page.close()
+
+
+def test_tracking_and_frequency_responses_render_in_the_page(browser: object, service: Service) -> None:
+    """A step's set-point against its output (the gear ratio applied, from where it started), and a
+    chirp's FRFs: magnitude and phase against log frequency with their ±1 σ band and the coherence."""
+    from playwright.sync_api import Browser, expect
+
+    assert isinstance(browser, Browser)
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page_errors: list[str] = []
+    page.on("pageerror", lambda error: page_errors.append(str(error)))
+    page.on("console", lambda message: _csp_refusal(message.text, page_errors))
+    _login(page, service)
+
+    step: Any = EXPERIMENTS["step"].Params()
+    page.click(f"button[data-results='{service.others['step']}']")
+    tracking = page.locator("figure[data-artifact=tracking]")
+    expect(tracking.locator(".uplot canvas")).to_have_count(2, timeout=10_000)
+    expect(tracking.locator("[data-testid=tracking-response] .u-legend")).to_contain_text("set-point")
+    expect(tracking.locator("[data-testid=tracking-response] .u-legend")).to_contain_text("load θ_l")
+    expect(tracking.locator("[data-testid=tracking-error] .u-title")).to_contain_text("tracking error")
+    # At the output and from the start: the set-point goes from 0 to the step's height, and the load
+    # ends back near 0 (the step goes there and back), not at the motor's angle (×1/r).
+    low, high = (float(v) for v in (tracking.get_attribute("data-setpoint-range") or "").split(" to "))
+    assert abs(low) < 1e-3 and abs(high - step.amp_out_rad) < 1e-3, (low, high)
+    assert abs(float(tracking.get_attribute("data-load-end") or "nan")) < 0.05 * step.amp_out_rad
+    page.evaluate("() => document.querySelector('figure[data-artifact=tracking]').scrollIntoView()")
+    _shot(page, "step")
+
+    page.click(f"button[data-results='{service.others['chirp']}']")
+    for name in ("frf_speed.csv", "frf_load.csv", "frf_closed_loop.csv"):
+        figure = page.locator(f"figure[data-artifact='{name}']")
+        expect(figure.locator(".uplot")).to_have_count(2, timeout=10_000)
+        expect(figure.locator(".u-title").nth(0)).to_contain_text("magnitude")
+        expect(figure.locator(".u-title").nth(1)).to_contain_text("phase")
+        expect(figure.locator(".u-legend").first).to_contain_text("coherence")
+        expect(figure.locator(".u-legend").first).to_contain_text("1 σ")
+        rows = figure.locator(".table-wrap tbody tr").count()
+        assert int(figure.locator(".chart").first.get_attribute("data-lines") or 0) >= rows > 5
+    for width in WIDTHS:
+        page.set_viewport_size({"width": width, "height": 900})
+        _no_horizontal_scroll(page)
+        _stop_on_screen_and_uncovered(page)
+        _axe(page)
+        page.locator("figure[data-artifact='frf_speed.csv']").evaluate("e => e.scrollIntoView()")
+        _shot(page, "chirp")
     assert page_errors == []
     page.close()

@@ -65,30 +65,46 @@ function fitWidth(chart, box) {
 }
 
 /**
- * A uPlot chart in `box`: `series` are {label, unit, color, points?}; x is labelled `xLabel`.
- * Returns the uPlot instance (call setData on it).
+ * A uPlot chart in `box`: `series` are {label, color, points?, spanGaps?, dash?, scale?, width?}; x is
+ * labelled `xLabel`. `xLog`: a logarithmic x (frequencies). `bands`: [upper, lower, fill] pairs of series
+ * (1-based, as in `data`) filled between. `right`: {scale, label, range} a second y axis on the right for
+ * the series with that `scale`. Returns the uPlot instance (call setData on it).
  */
-export function makeChart(box, { title, xLabel, yLabel, series, data, xTime = false }) {
+export function makeChart(box, { title, xLabel, yLabel, series, data, xTime = false, xLog = false, bands = [], right = null }) {
   box.replaceChildren();
+  // A log x spans the data, not whole decades (uPlot's default): 0.5 to 20 Hz is not drawn to 100 Hz.
+  const scales = { x: xLog ? { time: false, distr: 3, range: (u, min, max) => [min, max] } : { time: xTime } };
+  const axes = [
+    { label: xLabel, stroke: "#212121", grid: { stroke: "#eee" } },
+    { label: yLabel, stroke: "#212121", grid: { stroke: "#eee" }, size: 60 },
+  ];
+  if (right) {
+    scales[right.scale] = right.range ? { range: right.range } : {};
+    axes.push({ scale: right.scale, label: right.label, side: 1, stroke: "#212121", grid: { show: false }, size: 50 });
+  }
   const options = {
     title,
     width: Math.max(200, Math.floor(box.clientWidth) || 360),
     height: HEIGHT_PX,
-    scales: { x: { time: xTime } },
+    scales,
     legend: { show: series.length > 1 },
-    axes: [
-      { label: xLabel, stroke: "#212121", grid: { stroke: "#eee" } },
-      { label: yLabel, stroke: "#212121", grid: { stroke: "#eee" }, size: 60 },
-    ],
+    axes,
+    bands: bands.map(([upper, lower, fill]) => ({ series: [upper, lower], fill })),
     series: [
       { label: xLabel },
-      ...series.map((s) => ({
-        label: s.label,
-        stroke: s.color,
-        width: s.points ? 0 : 1.5,
-        spanGaps: Boolean(s.spanGaps),
-        points: s.points ? { show: true, size: 6, stroke: s.color, fill: s.color } : { show: false },
-      })),
+      ...series.map((s) => {
+        const one = {
+          label: s.label,
+          stroke: s.color,
+          width: s.points ? 0 : (s.width ?? 1.5),
+          spanGaps: Boolean(s.spanGaps),
+          points: s.points ? { show: true, size: 6, stroke: s.color, fill: s.color } : { show: false },
+        };
+        // Only when given: uPlot takes an explicit `undefined` over its defaults (scale "y", solid).
+        if (s.dash) one.dash = s.dash;
+        if (s.scale) one.scale = s.scale;
+        return one;
+      }),
     ],
   };
   const chart = new uPlot(options, data || [[], ...series.map(() => [])], box);

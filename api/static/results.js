@@ -127,6 +127,133 @@ function chartOfTable(box, name, table, metrics) {
   });
 }
 
+// ---- frequency responses (chirp) -------------------------------------------------------------------
+
+/** The chirp's FRFs (rig/experiments/chirp.py FRFS): what each relates, and its unit. */
+const FRFS = {
+  "frf_speed.csv": ["plant i_cmd → ω_m", "rad/s/A"],
+  "frf_load.csv": ["plant i_cmd → θ_l", "rad/A"],
+  "frf_closed_loop.csv": ["position loop set-point → θ_l", "rad/rad"],
+};
+const FRF_COLUMNS = ["freq_hz", "magnitude_db", "phase_deg", "coherence", "magnitude_std_db", "phase_std_deg"];
+
+function isFrf(name, table) {
+  return name in FRFS && FRF_COLUMNS.every((c) => table.columns.includes(c));
+}
+
+/** y ± k·σ, a gap where either is missing. */
+function shifted(y, sigma, k) {
+  return y.map((v, i) => (v === null || sigma[i] === null ? null : v + k * sigma[i]));
+}
+
+/** Magnitude and phase against log frequency, each with its ±1 σ band (the spread over the periods)
+ * and the coherence on a right axis, 0 to 1: where it is low the line is not to be trusted. */
+function frfCharts(magnitudeBox, phaseBox, name, table) {
+  const [what, unit] = FRFS[name];
+  const [f, magnitude, magnitudeStd, phase, phaseStd, coherence] = sortedColumns(table, "freq_hz", [
+    "magnitude_db",
+    "magnitude_std_db",
+    "phase_deg",
+    "phase_std_deg",
+    "coherence",
+  ]);
+  const one = (title, yLabel, y, sigma, color, fill) => ({
+    title,
+    xLabel: "f [Hz]",
+    yLabel,
+    xLog: true,
+    series: [
+      { label: title.split(": ").pop(), color },
+      { label: "+1 σ", color: fill.replace("0.15", "0.5"), width: 1 },
+      { label: "−1 σ", color: fill.replace("0.15", "0.5"), width: 1 },
+      { label: "coherence", color: COLORS[2], scale: "coherence", dash: [5, 4], width: 1 },
+    ],
+    data: [f, y, shifted(y, sigma, 1), shifted(y, sigma, -1), coherence],
+    bands: [[2, 3, fill]],
+    right: { scale: "coherence", label: "coherence [–]", range: [0, 1] },
+  });
+  const magnitudeChart = makeChart(magnitudeBox, one(`${what}: magnitude`, `|H| [dB re 1 ${unit}]`, magnitude, magnitudeStd, COLORS[0], "rgba(21, 101, 192, 0.15)"));
+  const phaseChart = makeChart(phaseBox, one(`${what}: phase`, "phase [deg]", phase, phaseStd, COLORS[1], "rgba(198, 40, 40, 0.15)"));
+  magnitudeBox.dataset.lines = String(f.length);
+  return [magnitudeChart, phaseChart];
+}
+
+// ---- set-point against output (step, sine, ramp) --------------------------------------------------
+
+const TRACKING = new Set(["step", "sine", "ramp"]);
+const ZERO_WINDOW_S = 0.1; // rig/experiments/tracking.py ZERO_WINDOW_S: the load angle's zero, before the program
+const TRACK_POINTS = 6000; // per series: a step's whole run, a long sine thinned
+
+/** A tracking run seen at the output as tracking.output_track sees it: from the program's start, angles
+ * from where it started: set-point r·(θ_sp − θ_m0), load θ_l − θ_l0, motor r·(θ_m − θ_m0). */
+async function outputTrack(run) {
+  const doc = await request("GET", `/runs/${encodeURIComponent(run.id)}`);
+  const meta = doc.meta || {};
+  const segments = meta.segments || [];
+  const r = meta.gear_ratio;
+  if (!segments.length || !Number.isFinite(r) || !Number.isFinite(meta.theta_m0)) {
+    throw new Error("the run's metadata has no segments, gear_ratio or theta_m0");
+  }
+  const url = `${API}/runs/${encodeURIComponent(run.id)}/data?format=csv&columns=setpoint,theta_l,theta_m`;
+  const table = parseCsv(await fetchText(url));
+  const column = (name) => table.rows.map((row) => row[table.columns.indexOf(name)]);
+  const [t, setpoint, load, motor] = ["t", "setpoint", "theta_l", "theta_m"].map(column);
+  const first = Math.min(...segments.map((s) => s.start));
+  const last = Math.max(...segments.map((s) => s.start + s.cycles));
+  const zeroRows = Math.round(ZERO_WINDOW_S * (meta.sample_rate_hz || 1000));
+  const zero = load.slice(Math.max(0, first - zeroRows), first);
+  const loadZero = zero.length ? zero.reduce((a, b) => a + b, 0) / zero.length : load[0];
+  const step = Math.max(1, Math.ceil((last - first) / TRACK_POINTS));
+  const track = { t: [], setpoint: [], load: [], motor: [] };
+  for (let i = first; i < Math.min(last, t.length); i += step) {
+    track.t.push(t[i] - t[first]);
+    track.setpoint.push(r * (setpoint[i] - meta.theta_m0));
+    track.load.push(load[i] - loadZero);
+    track.motor.push(r * (motor[i] - meta.theta_m0));
+  }
+  return track;
+}
+
+/** Set-point and the two responses, and their errors, on one time axis each. */
+async function trackingFigure(run) {
+  const track = await outputTrack(run);
+  const responseBox = el("div", { class: "chart", dataset: { testid: "tracking-response" } });
+  const errorBox = el("div", { class: "chart", dataset: { testid: "tracking-error" } });
+  const range = (values) => [Math.min(...values), Math.max(...values)].map((v) => fmt(v)).join(" to ");
+  const figure = el(
+    "figure",
+    { class: "wide", dataset: { artifact: "tracking", setpointRange: range(track.setpoint), loadEnd: String(track.load.at(-1)) } },
+    el("figcaption", {}, `${run.experiment}: set-point and output, at the output (gear ratio applied)`),
+    responseBox,
+    errorBox,
+  );
+  const minus = (y) => y.map((v, i) => v - track.setpoint[i]);
+  const draw = () => {
+    makeChart(responseBox, {
+      title: "set-point and output",
+      xLabel: "t from the program's start [s]",
+      yLabel: "output angle [rad]",
+      series: [
+        { label: "set-point", color: "#424242", width: 2 },
+        { label: "load θ_l", color: COLORS[0] },
+        { label: "motor r·θ_m", color: COLORS[1], dash: [6, 3], width: 1 },
+      ],
+      data: [track.t, track.setpoint, track.load, track.motor],
+    });
+    makeChart(errorBox, {
+      title: "tracking error (output − set-point)",
+      xLabel: "t from the program's start [s]",
+      yLabel: "error [rad]",
+      series: [
+        { label: "load θ_l − set-point", color: COLORS[0] },
+        { label: "motor r·θ_m − set-point", color: COLORS[1], width: 1 },
+      ],
+      data: [track.t, minus(track.load), minus(track.motor)],
+    });
+  };
+  return [figure, draw];
+}
+
 // ---- a run's results -----------------------------------------------------------------------------
 
 /** Show one run's artifacts: plots as images, tables as tables with their plot, metrics as a table. */
@@ -168,14 +295,30 @@ export async function showRunResults(run, recentRuns) {
     );
   }
   const charts = [];
+  if (TRACKING.has(run.experiment) && run.samples) {
+    try {
+      const [figure, draw] = await trackingFigure(run);
+      figures.push(figure);
+      charts.push(draw);
+    } catch (error) {
+      figures.push(el("figure", { dataset: { artifact: "tracking" } }, el("figcaption", {}, "set-point and output"), el("p", { class: "problem" }, error.message)));
+    }
+  }
   for (const path of files.filter((f) => f.endsWith(".csv"))) {
     const name = path.split("/").pop();
     const figure = el("figure", { dataset: { artifact: path } }, el("figcaption", {}, name));
     try {
       const table = parseCsv(await fetchText(artifactUrl(run.id, path)));
       const box = el("div", { class: "chart" });
-      figure.append(box, tableOf(table), el("a", { href: artifactUrl(run.id, path), download: `${run.id}-${name}` }, `download ${name}`));
-      charts.push(() => chartOfTable(box, name, table, metrics));
+      figure.append(box);
+      if (isFrf(name, table)) {
+        const phaseBox = el("div", { class: "chart" });
+        figure.append(phaseBox);
+        charts.push(() => frfCharts(box, phaseBox, name, table));
+      } else {
+        charts.push(() => chartOfTable(box, name, table, metrics));
+      }
+      figure.append(tableOf(table), el("a", { href: artifactUrl(run.id, path), download: `${run.id}-${name}` }, `download ${name}`));
     } catch (error) {
       figure.append(el("p", { class: "problem" }, error.message));
     }
