@@ -5,12 +5,18 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 OUT    ?= results
 
-.PHONY: install run test lint bench clean serve
+.PHONY: install run test lint bench clean serve lock
 
-$(STAMP): pyproject.toml
+# Installs go through uv with constraints.txt, the lock of every dependency of every extra (README,
+# "Installing"): exact versions on every machine, and no resolver search at install time.
+UV_VERSION  := 0.13.9
+CONSTRAINTS := constraints.txt
+UV_INSTALL   = $(BIN)/uv pip install --quiet --python $(BIN)/python -c $(CONSTRAINTS)
+
+$(STAMP): pyproject.toml $(CONSTRAINTS)
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet uv==$(UV_VERSION)
+	$(UV_INSTALL) -e '.[dev]'
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -41,7 +47,7 @@ lint: install
 # their Python side, so CI never skips them (.ci/run installs Debian's postgresql).
 FLEET_STAMP := $(VENV)/.installed-fleet
 $(FLEET_STAMP): $(STAMP)
-	$(BIN)/python -m pip install --quiet -e '.[dev,fleet]'
+	$(UV_INSTALL) -e '.[dev,fleet]'
 	touch $(FLEET_STAMP)
 
 test: lint $(FLEET_STAMP)
@@ -50,7 +56,7 @@ test: lint $(FLEET_STAMP)
 # Benchmarks print their figures beside the targets (docs/BENCHMARKS.md keeps the latest); the SINDy
 # baseline of the gap benchmark needs the `bench` extra.
 bench: install
-	$(BIN)/python -m pip install --quiet -e '.[dev,bench,fleet]'
+	$(UV_INSTALL) -e '.[dev,bench,fleet]'
 	$(BIN)/python bench/bench_simulator.py
 	$(BIN)/python bench/bench_campaign.py
 	$(BIN)/python bench/bench_identify.py
@@ -61,6 +67,12 @@ bench: install
 	$(BIN)/python bench/bench_service.py
 	$(BIN)/python bench/bench_endurance.py
 	$(BIN)/python bench/bench_fleet.py
+
+# Renews the lock after a change of pyproject.toml's dependencies (--upgrade: the newest allowed versions).
+# One universal file for every extra and platform; commit it with the change that asked for it.
+lock: install
+	$(BIN)/uv pip compile pyproject.toml --all-extras --universal --python-version 3.11 --upgrade \
+	  --quiet -o $(CONSTRAINTS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache *.egg-info

@@ -18,6 +18,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from model.errors import UserInputError, describe_validation_error
+from model.resources import card_folder
 from model.settings_file import read_settings
 
 N_FOURIER = 10
@@ -359,7 +360,7 @@ class ModelFileError(UserInputError):
     """A model file cannot be read or breaks the schema; the message is one line naming file and field."""
 
 
-PRESET_DIR = Path(__file__).resolve().parent.parent / "configs" / "models"
+PRESET_DIR = card_folder("models")
 
 
 def preset_names() -> list[str]:

@@ -12,9 +12,10 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from model.errors import UserInputError, describe_validation_error
+from model.resources import card_folder
 from model.settings_file import read_settings
 
-RIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "rigs"
+RIG_DIR = card_folder("rigs")
 
 
 class RigConfigError(UserInputError):

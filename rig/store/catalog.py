@@ -36,8 +36,9 @@ from sqlalchemy import event
 from sqlalchemy.engine import URL, Connection, Engine, make_url
 
 from model.errors import UserInputError
+from model.resources import package_folder
 
-MIGRATIONS = Path(__file__).with_name("catalog_migrations")
+MIGRATIONS = package_folder("rig.store", "catalog_migrations")
 DEFAULT_PAGE = 100  # runs in a page when the caller does not say (the CLI's and the service's listing)
 MAX_PAGE = 1000  # the service's largest page: one answer stays well under a second and a few MB
 CATALOG_FILE = "catalog.sqlite"
