@@ -74,7 +74,8 @@ class ScalingSettings(_Section):
         default=None,
         gt=0,
         description="velocity units per motor rad/s; default: from `velocity_unit`, else the drive's"
-        " 0x60A9/0x6094/0x6096, else position units per second",
+        " 0x60A9/0x6094/0x6096, else its DSP 402 v2 notation and dimension (0x608B/0x608C), else position"
+        " units per second",
     )
     velocity_unit: Literal["increments_per_s", "rpm"] | None = Field(
         default=None,
@@ -192,6 +193,8 @@ class Scaling:
     rated_current_a: float | None
     torque_constant_nm_per_a: float
     acceleration_units_per_rad_s2: float | None = None  # None: velocity units per second
+    notes: tuple[str, ...] = ()
+    """What the driver had to assume, one line each (an object the drive refused to read): logged."""
 
     def acceleration_raw(self, rad_s2: float) -> int:
         """An acceleration (0x6083/0x6084/0x6085) in the drive's acceleration units."""
@@ -227,8 +230,16 @@ class Scaling:
         return round(current_a / self.rated_current_a * 1000.0)
 
 
-ObjectReader = Callable[[int, int], int]
-"""Reads an object's value (index, sub-index) from the drive: SDO upload on a bus, a default offline."""
+ObjectReader = Callable[[int, int], int | None]
+"""Reads an object's value (index, sub-index) from the drive: SDO upload on a bus, a default offline;
+None where the drive refuses the read (an optional object its EDS declares without a value)."""
+
+UNIT_OF_OBJECT: Final = {
+    **{index: "position_units_per_rev" for index in (0x608F, 0x6091, 0x6092, 0x6093, 0x60A8)},
+    **{index: "velocity_units_per_rad_s" for index in (0x6094, 0x6096, 0x60A9, 0x608B, 0x608C)},
+    **{index: "acceleration_units_per_rad_s2" for index in (0x6097, 0x60AA)},
+}
+"""Which rig setting stands in for a factor-group object the drive refuses to read."""
 
 
 def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: ObjectReader) -> Scaling:
@@ -242,6 +253,11 @@ def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: Objec
                 f"canopen.scaling.{field} is needed: the EDS has no 0x{index:04X}:{sub:02X} ({what})"
             )
         value = read(index, sub)
+        if value is None:
+            raise CanopenConfigError(
+                f"canopen.scaling.{field} is needed: the drive refused the read of 0x{index:04X}:{sub:02X}"
+                f" ({what})"
+            )
         if value <= 0:
             raise CanopenConfigError(
                 f"canopen.scaling.{field} is needed: the drive's 0x{index:04X}:{sub:02X} ({what}) is {value}"
@@ -249,6 +265,7 @@ def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: Objec
         return value
 
     group = FactorGroup.read(od, read)
+    notes = _refused_notes(settings, group)
     per_rev = _agreed(
         "position_units_per_rev", settings.position_units_per_rev, group.position_units_per_rev, group
     )
@@ -284,7 +301,28 @@ def resolve_scaling(settings: ScalingSettings, od: ObjectDictionary, read: Objec
         rated_current_a=rated_current,
         torque_constant_nm_per_a=settings.torque_constant_nm_per_a,
         acceleration_units_per_rad_s2=acceleration_per_rad_s2,
+        notes=notes,
     )
+
+
+def _refused_notes(settings: ScalingSettings, group: FactorGroup) -> tuple[str, ...]:
+    """A line per unit object the drive refused to read, where the rig file gives that unit; a refused
+    object whose unit the rig file leaves to the drive is an error naming the setting."""
+    notes = []
+    for index, sub in group.refused:
+        field = UNIT_OF_OBJECT.get(index)
+        given = field is not None and (
+            getattr(settings, field) is not None
+            or (field == "velocity_units_per_rad_s" and settings.velocity_unit is not None)
+        )
+        what = f"0x{index:04X}:{sub:02X} ({FACTOR_OBJECTS.get(index, 'unit object')})"
+        if not given:
+            needed = field or "position_units_per_rev"
+            raise CanopenConfigError(
+                f"canopen.scaling.{needed} is needed: the drive refused the read of {what}"
+            )
+        notes.append(f"the drive refused the read of {what}: its unit is taken from canopen.scaling.{field}")
+    return tuple(notes)
 
 
 UNITS_REL_TOL: Final = 1e-6
@@ -342,6 +380,8 @@ SI_ANGLES_PER_TURN: Final = {
 SI_INCREMENT: Final = 0xB5
 SI_SECONDS: Final = {0x03: ("s", 1.0), 0x47: ("min", 60.0), 0x48: ("h", 3600.0)}
 SI_SECONDS_SQUARED: Final = 0x57
+REVOLUTIONS_PER_TIME: Final = {0xA3: ("rev/s", 1.0), 0xA4: ("rpm", 60.0), 0xA5: ("rev/h", 3600.0)}
+"""DSP 402 v2 velocity dimension indices (0x608C) this driver reads, and the seconds of their time unit."""
 FACTOR_OBJECTS: Final = {
     0x608F: "position encoder resolution",
     0x6091: "gear ratio",
@@ -353,6 +393,8 @@ FACTOR_OBJECTS: Final = {
     0x60A8: "SI unit position",
     0x60A9: "SI unit velocity",
     0x60AA: "SI unit acceleration",
+    0x608B: "velocity notation index",
+    0x608C: "velocity dimension index",
 }
 """The objects that set a drive's units: a write to any of them changes what its numbers mean."""
 
@@ -408,6 +450,9 @@ class FactorGroup:
       shaft, after the gear); else 0x6094 (DSP 402 2.0: increments/s per velocity unit); else position
       units per second × velocity factor 0x6096.
     - acceleration: 0x60AA (angle or increments per s²); else velocity units per second × 0x6097.
+    - where none of the velocity objects is there, DSP 402 v2's notation and dimension indices: 0x608C
+      names revolutions per second, minute or hour (0xA3, 0xA4, 0xA5) and 0x608B its power of ten
+      (maxon's EPOS2 says rpm so). Other dimension codes are not read: a rig setting must say them.
 
     Objects that state one unit twice must agree, else one line naming them and their values.
     """
@@ -422,15 +467,29 @@ class FactorGroup:
     si_position: SiUnit | None = None
     si_velocity: SiUnit | None = None
     si_acceleration: SiUnit | None = None
+    velocity_dimension: int | None = None  # 0x608C (DSP 402 v2)
+    velocity_notation: int = 0  # 0x608B: the power of ten of 0x608C's unit
+    refused: tuple[tuple[int, int], ...] = ()
+    """Objects the dictionary has whose read the drive refused: (index, sub-index)."""
 
     @classmethod
     def read(cls, od: ObjectDictionary, read: ObjectReader) -> FactorGroup:
         """The objects the dictionary has, their values read with `read` (from the drive on a bus)."""
 
-        def ratio(index: int) -> Fraction | None:
-            if not (_has(od, index, 1) and _has(od, index, 2)):
+        refused: list[tuple[int, int]] = []
+
+        def value(index: int, sub: int) -> int | None:
+            if not _has(od, index, sub):
                 return None
-            numerator, divisor = read(index, 1), read(index, 2)
+            read_value = read(index, sub)
+            if read_value is None:
+                refused.append((index, sub))
+            return read_value
+
+        def ratio(index: int) -> Fraction | None:
+            numerator, divisor = value(index, 1), value(index, 2)
+            if numerator is None or divisor is None:
+                return None
             if numerator <= 0 or divisor <= 0:
                 if index == 0x608F:
                     return None  # no resolution set: a setting must give it (resolve_scaling says so)
@@ -441,9 +500,10 @@ class FactorGroup:
             return Fraction(numerator, divisor)
 
         def si(index: int) -> SiUnit | None:
-            code = read(index, 0) & 0xFFFFFFFF if _has(od, index) else 0
-            return SiUnit(index, code) if code else None  # 0: no unit stated
+            code = value(index, 0)
+            return SiUnit(index, code & 0xFFFFFFFF) if code else None  # 0: no unit stated
 
+        notation = value(0x608B, 0)
         return cls(
             resolution=ratio(0x608F),
             gear=ratio(0x6091),
@@ -455,6 +515,9 @@ class FactorGroup:
             si_position=si(0x60A8),
             si_velocity=si(0x60A9),
             si_acceleration=si(0x60AA),
+            velocity_dimension=value(0x608C, 0) or None,
+            velocity_notation=notation if notation is not None else 0,
+            refused=tuple(refused),
         )
 
     def said(self) -> str:
@@ -470,6 +533,8 @@ class FactorGroup:
         }
         parts = [f"0x{i:04X} = {_ratio_text(r)}" for i, r in ratios.items() if r is not None]
         parts += [str(u) for u in (self.si_position, self.si_velocity, self.si_acceleration) if u is not None]
+        if self.velocity_dimension is not None:
+            parts.append(f"0x608C = 0x{self.velocity_dimension:02X}, 0x608B = {self.velocity_notation}")
         return ", ".join(parts) if parts else "no factor group"
 
     def _contradiction(self, what: str) -> CanopenConfigError:
@@ -530,6 +595,8 @@ class FactorGroup:
             raise UnitUnreadError(
                 f"{self.si_velocity} is not a unit the driver reads (an angle or increments per s, min or h)"
             )
+        if implied is None and self.velocity_factor is None and self.si_velocity is None:
+            return self._notation_rate()
         if implied is None:
             return (
                 position_per_rad * float(self.velocity_factor) if self.velocity_factor is not None else None
@@ -567,6 +634,19 @@ class FactorGroup:
                 f" 0x6097 (acceleration factor) = {velocity_per_rad_s:.7g} × {_ratio_text(factor)}"
             )
         return implied
+
+    def _notation_rate(self) -> float | None:
+        """Velocity units per motor rad/s from 0x608B/0x608C (revolutions per time, 10^0x608B each)."""
+        if self.velocity_dimension is None:
+            return None
+        if self.velocity_dimension not in REVOLUTIONS_PER_TIME:
+            raise UnitUnreadError(
+                f"0x608C (velocity dimension index) = 0x{self.velocity_dimension:02X} is not a unit the"
+                " driver reads (revolutions per s, min or h: 0xA3, 0xA4, 0xA5)"
+            )
+        seconds = REVOLUTIONS_PER_TIME[self.velocity_dimension][1]
+        gear = float(self.gear) if self.gear is not None else 1.0
+        return seconds / (2 * math.pi) / gear * 10.0**-self.velocity_notation
 
     def _position_units_per_second(self) -> bool:
         """0x60A9 names the position unit of 0x60A8 per second (a length, say): position units/s."""

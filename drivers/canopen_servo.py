@@ -226,7 +226,9 @@ class CanopenServo:
             self._heartbeat = network.send_periodic(
                 cob_id, HOST_HEARTBEAT_STATE, period_s, gate=self._loop_alive
             )
-        self.scaling = resolve_scaling(self.settings.scaling, self.od, self._read)
+        self.scaling = resolve_scaling(self.settings.scaling, self.od, self._read_or_none)
+        for note in self.scaling.notes:
+            logger.warning("node %d: %s", node.id, note)
         self.modes = DriveModes.of(self.od, self._read_or_none)
         self._plan, self.mode, self.choice = None, None, None  # RPDO 1 is off until configure()
         self._last = None

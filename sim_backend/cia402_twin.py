@@ -267,6 +267,13 @@ class Cia402Twin:
         except (KeyError, SdoAbortedError):
             return default
 
+    def _get_or_none(self, index: int, subindex: int = 0) -> int | None:
+        """The object's value, None when it holds none (a master's read of it is refused)."""
+        try:
+            return self._get(index, subindex)
+        except (KeyError, SdoAbortedError):
+            return None
+
     # --- boot, NMT, resets ------------------------------------------------------------------------
 
     def _boot(self) -> None:
@@ -649,7 +656,7 @@ class Cia402Twin:
         of the twin's dictionary defines them (`FactorGroup`: the driver's own reading of CiA 402), with
         the values a master wrote; increments of its encoder (0x608F) where the group says nothing."""
         if self._units is None:
-            group = FactorGroup.read(self.node.object_dictionary, lambda i, s: self._get_or(i, 0, s))
+            group = FactorGroup.read(self.node.object_dictionary, self._get_or_none)
             resolution = self._get_or(0x608F, 0, 1) / max(1, self._get_or(0x608F, 1, 2))
             increments = (resolution if resolution > 0 else self._encoder_counts_per_rev()) / (2 * math.pi)
             try:
