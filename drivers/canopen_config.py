@@ -24,9 +24,10 @@ from drivers.cia402 import TARGET_OBJECT, OperationMode
 from drivers.drive_modes import TORQUE_OFFSET
 from drivers.pdo_layout import PDO_MAX_BITS, PdoEntry, PdoLayout, od_variable
 from model.errors import UserInputError, describe_validation_error
+from model.resources import card_folder
 from rig.config import RigConfig
 
-EDS_DIR = Path(__file__).resolve().parent.parent / "configs" / "eds"
+EDS_DIR = card_folder("eds")
 
 PDO_INVALID = 1 << 31
 SYNCHRONOUS = 1  # transmission type: every SYNC (TPDO), applied at the next SYNC (RPDO)
