@@ -55,6 +55,7 @@ from api.schemas import (
 )
 from model.errors import UserInputError
 from model.params import load_model, parse_model, preset_names
+from model.resources import package_folder
 from rig.config import RigConfig
 from rig.core import access, actions
 from rig.core.access import AuditEntry, KeyInfo, Role
@@ -67,7 +68,7 @@ from rig.store.runfile import write_columns
 from rig.store.runs import ARTIFACTS_DIR, EXPORT_FORMATS, MODEL_NAME_PATTERN, RunStore
 
 API = "/api/v1"
-STATIC_DIR = Path(__file__).parent / "static"
+STATIC_DIR = package_folder("api", "static")
 STREAM_KINDS = frozenset(
     {EventKind.STATE, EventKind.PROGRESS, EventKind.SAMPLES, EventKind.ALARM, EventKind.RUN}
 )
