@@ -49,6 +49,7 @@ CHROMIUM_ARGS = [
 SERVICE_START_S = 60.0  # a cold start imports numpy, numba's kernels, matplotlib...
 FIRST_POINTS_S = 15.0  # the worker opens the rig and the first 0.25 s block is published
 STOP_S = 10.0  # quick stop: the motor coasts to rest and the run is sealed
+RECONNECT_S = 4.0  # past Chromium's EventSource reconnection delay (3 s)
 RECORD_S = 300.0  # a CLI run on the virtual-time rig (a cold start, ~5 s of simulation), four side by side
 ANALYSIS_S = 120.0  # a fit of one sweep (~16 s here) and a gap analysis (~22 s), one after the other
 UNIT = "HD-BROWSER-1"  # the gear unit the recorded sweeps were made on: its trend has both
@@ -268,6 +269,8 @@ def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, s
     page.on("pageerror", lambda error: page_errors.append(str(error)))
     # The service's Content-Security-Policy (own scripts and styles only) refuses nothing the page does.
     page.on("console", lambda message: _csp_refusal(message.text, page_errors))
+    streams: list[str] = []  # every event stream the page opens (EventSource reconnects by itself)
+    page.on("request", lambda request: streams.append(request.url) if "/events" in request.url else None)
 
     # Before login: the login form, and the Stop button already on screen.
     page.goto(service.url + "/")
@@ -357,6 +360,11 @@ def test_operator_starts_a_sweep_watches_it_live_and_stops_it(browser: object, s
     run = service.get(f"/api/v1/runs/{run_id}")
     assert isinstance(run, dict)
     assert run["status"] == "aborted"
+    # The stream the service ended after the final document is not opened again: Chromium reconnects
+    # 3 s after a stream ends, so this waits past that for a request that must not come.
+    page.wait_for_timeout(RECONNECT_S * 1000)
+    opened = [url for url in streams if f"/runs/{run_id}/events" in url]
+    assert len(opened) == 1, streams
 
     # The next run starts clean: the last stop's alarm belongs to the last run, not to this one.
     page.click("#start")
