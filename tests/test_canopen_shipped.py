@@ -5,7 +5,8 @@ Two test files of our own (configs/eds/), each with one trait real drives have, 
 velocity unit by the DSP 402 v2 notation and dimension indices: 0x608B = 0 and 0x608C = 0xA4, rpm (as
 maxon's EPOS2 does); its max profile velocity 0x607F is declared within [0, 25000].
 `test-optional-factor-no-value.eds` declares the optional velocity encoder factor 0x6094 without a
-value, so the drive refuses its read; the rig file gives the velocity unit (as with Technosoft's iPOS).
+value, so the drive refuses its read; its velocity unit is encoder increments per second
+(131072 / 2π = 20860.8 a motor rad/s), which the rig file gives (as with Technosoft's iPOS).
 
 The figures are worked by hand: 1 rad/s is 60 / 2π = 9.5493 rpm; 600 rad/s (the sim rig's velocity
 limit) is 5730 rpm, inside 0x607F's range, where increments per second (131072 / 2π a rad/s: 12.5 M)
@@ -104,9 +105,9 @@ def test_a_dimension_the_driver_cannot_read_is_asked_of_the_rig_file_in_one_line
 def test_a_refused_optional_factor_falls_back_on_the_rig_file_with_a_note() -> None:
     settings, od, read = shipped_drive(NO_VALUE)
     assert read(0x6094, 1) is None  # the premise: declared without a value
-    given = settings.scaling.model_copy(update={"velocity_unit": "rpm"})
+    given = settings.scaling.model_copy(update={"velocity_unit": "increments_per_s"})
     scaling = resolve_scaling(given, od, read)
-    assert scaling.velocity_units_per_rad_s == pytest.approx(RPM_PER_RAD_S, rel=1e-12)
+    assert scaling.velocity_units_per_rad_s == pytest.approx(131072 / (2 * math.pi), rel=1e-12)
     assert scaling.notes == (
         "the drive refused the read of 0x6094:01 (velocity encoder factor): its unit is taken from"
         " canopen.scaling.velocity_units_per_rad_s",
@@ -129,7 +130,7 @@ def test_a_refused_factor_whose_unit_the_rig_file_leaves_to_the_drive_is_an_erro
 
 @pytest.mark.parametrize(
     ("eds", "scaling"),
-    [(NOTATION, {}), (NO_VALUE, {"velocity_unit": "rpm"})],
+    [(NOTATION, {}), (NO_VALUE, {"velocity_unit": "increments_per_s"})],
     ids=["dsp402v2-rpm", "optional-factor-no-value"],
 )
 def test_the_speed_sweep_runs_on_twins_of_drives_as_shipped(
