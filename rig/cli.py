@@ -536,6 +536,8 @@ STREAMS_GRACE_S = 3  # [s] uvicorn's wait for open responses; event streams end 
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
+    import logging
+
     import uvicorn
 
     from rig.config import load_rig_config
@@ -545,7 +547,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     _here_only(args)
     config = load_rig_config(args.rig)
     store = RunStore()
-    host = "localhost" if args.host in ("127.0.0.1", "::1") else args.host
+    host = f"[{args.host}]" if ":" in args.host else args.host  # as given: 127.0.0.1, not localhost
     if not access.has_keys(store):
         key = access.create_key(store, access.Role.ADMIN, "admin", door="first start of hdrig serve")
         _say(f"hdrig: no API key in {store.home}: made an admin key, shown only this once:\n    {key}")
@@ -556,6 +558,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
     served = uvicorn.Config(
         app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=STREAMS_GRACE_S
     )
+    # A request log, one line each, uvicorn's other chatter left at warnings. The page's polls (the rig
+    # each second, the lists every 5 s) are left out when answered: they would drown every other line.
+    polls = {"/api/v1/rig", "/api/v1/health", "/api/v1/jobs"}
+
+    def not_a_poll(record: logging.LogRecord) -> bool:
+        fields = record.args if isinstance(record.args, tuple) and len(record.args) == 5 else None
+        if fields is None:
+            return True
+        _, method, path, _, status = fields
+        polled = str(path) in polls or str(path).startswith("/api/v1/runs?")
+        return not (method == "GET" and polled and isinstance(status, int) and status < 400)
+
+    request_log = logging.getLogger("uvicorn.access")
+    request_log.setLevel(logging.INFO)
+    request_log.addFilter(not_a_poll)
+    for handler in request_log.handlers:
+        handler.setFormatter(logging.Formatter("hdrig: %(asctime)s %(message)s", "%H:%M:%S"))
 
     def listening(port: int) -> None:
         _say(

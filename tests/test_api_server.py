@@ -142,7 +142,10 @@ def test_a_store_without_keys_gets_an_admin_key_printed_once(
     key = next(line.strip() for line in text.splitlines() if line.startswith("    "))
     auth = {"Authorization": f"Bearer {key}"}
     assert httpx.get(f"{servers[0].base}{API}/keys", headers=auth).status_code == 200
-    assert "http://localhost:" in text
+    assert "http://127.0.0.1:" in text and "localhost" not in text  # where it listens, as the README says
+    # The request log: a line for the request above, none for the health polls that waited for the start.
+    wait_until("the request logged", lambda: '"GET /api/v1/keys HTTP/1.1" 200' in log.read_text(), 5)
+    assert "GET /api/v1/health" not in log.read_text()
 
 
 def test_served_over_tcp_contract_shapes_and_closing_the_stream_early_keeps_the_run(

@@ -131,7 +131,7 @@ def test_a_signal_with_20_streams_open_stops_the_rig_first_ends_every_stream_and
     try:
         auth = {"Authorization": f"Bearer {key}"}
         text = log.read_text()
-        assert f"hdrig: serving rig sim-live on http://localhost:{base.rsplit(':', 1)[1]}/" in text
+        assert f"hdrig: serving rig sim-live on http://127.0.0.1:{base.rsplit(':', 1)[1]}/" in text
         assert "Ctrl-C stops the rig and exits" in text
         # ~20 s of holds at a wall-clock pace, so that the signal comes mid-run however the defaults change
         sweep = {"experiment": "speed-sweep", "params": {"speeds_rad_s": [0.5, 1.0, 2.0], "hold_s": 3.0}}
