@@ -23,18 +23,16 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from functools import partial
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 from urllib.parse import urlencode
 
 import numpy as np
-import yaml
 from fastapi import APIRouter, Depends, FastAPI, Header, Query, Request, Response
 from fastapi import Path as PathParam
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import FileResponse, HTMLResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials
 from fastapi.staticfiles import StaticFiles
-from pydantic import BaseModel, ConfigDict, Field
 from starlette.background import BackgroundTask
 
 from api import auth, guard, problems
@@ -46,26 +44,29 @@ from api.schemas import (
     FileList,
     Health,
     KeyRequest,
+    ModelUpload,
     NewKey,
     RigHealth,
     RigStatus,
+    RunListQuery,
     RunRequest,
     SessionInfo,
     SessionRequest,
 )
 from model.errors import UserInputError
-from model.params import load_model, parse_model, preset_names
+from model.params import preset_names
 from model.resources import package_folder
 from rig.config import RigConfig
-from rig.core import access, actions
+from rig.core import access, actions, operations
 from rig.core.access import AuditEntry, KeyInfo, Role
-from rig.core.documents import ExperimentInfo, JobDocument, JobKind, JobStatus, ModelSummary, RunDocument
+from rig.core.actions import UnknownJobError
+from rig.core.documents import ExperimentInfo, JobDocument, JobKind, JobStatus, RunDocument
 from rig.core.events import Event, EventKind
-from rig.core.worker import AnalysisWorker, Job, RigWorker, UnknownJobError
+from rig.core.worker import AnalysisWorker, Job, RigWorker
+from rig.lab import ServedApp
 from rig.status import RunStatus
-from rig.store.catalog import DEFAULT_PAGE, MAX_PAGE
-from rig.store.runfile import write_columns
-from rig.store.runs import ARTIFACTS_DIR, EXPORT_FORMATS, MODEL_NAME_PATTERN, RunStore
+from rig.store.catalog import MAX_PAGE
+from rig.store.runs import ARTIFACTS_DIR, EXPORT_FORMATS, RunStore
 
 API = "/api/v1"
 STATIC_DIR = package_folder("api", "static")
@@ -97,6 +98,10 @@ Operator = Annotated[Principal, Depends(auth.operator)]
 Admin = Annotated[Principal, Depends(auth.admin)]
 RunId = Annotated[str, PathParam(description="a run id", max_length=200)]
 JobId = Annotated[str, PathParam(description="a job id", max_length=200)]
+JobsLimit = Annotated[
+    int, Query(ge=1, le=MAX_PAGE, description=f"the newest jobs, oldest first, 1-{MAX_PAGE}")
+]
+AuditLimit = Annotated[int, Query(ge=1, le=AUDIT_PAGE_MAX, description=f"newest lines, 1-{AUDIT_PAGE_MAX}")]
 
 
 # ---- what the routes share ------------------------------------------------------------------------
@@ -123,21 +128,9 @@ def _audit(
     access.audit(_store(request), who.name, who.role, action, target, detail)
 
 
-def _owner_of(worker: RigWorker, run_id: str) -> str | None:
-    return next((job.owner for job in worker.jobs() if run_id in job.runs), None)
-
-
 def _run(request: Request, run_id: str) -> RunDocument:
     """A run: queued or recording from the worker, else from the store (404 when unknown)."""
-    worker = _worker(request)
-    live = worker.live_run(run_id)
-    if live is not None:
-        if live.status == RunStatus.RUNNING:  # the worker knows the progress, the store what is on disk
-            live.samples = _store(request).get(run_id)["samples"]
-        return live
-    document = actions.run_document(_store(request), run_id)
-    document.owner = _owner_of(worker, run_id)
-    return document
+    return _worker(request).run_document(run_id)
 
 
 def _job(request: Request, job_id: str) -> Job:
@@ -172,6 +165,24 @@ def _accepted(response: Response, location: str) -> None:
 # ---- the routes -------------------------------------------------------------------------------------
 
 router = APIRouter(prefix=API, responses=ERROR_RESPONSES)
+Route = TypeVar("Route", bound=Callable[..., Any])
+
+
+def _route(name: str, **kwargs: Any) -> Callable[[Route], Route]:
+    """Register a route of the operation `name` (`rig.core.operations`): its method, path, summary, tag
+    and success status come from the action table."""
+    operation = operations.operation(name)
+    assert operation.rest is not None, f"operation {name} has no route"
+    method, path = operation.rest
+    decorate: Callable[[Route], Route] = router.api_route(
+        path,
+        methods=[method],
+        summary=operation.summary,
+        tags=[operation.tag],
+        status_code=operation.status,
+        **kwargs,
+    )
+    return decorate
 
 
 @router.get("/health", response_model=Health, tags=["service"], summary="liveness (no key needed)")
@@ -208,7 +219,7 @@ def logout(request: Request, who: Viewer) -> Response:
     return response
 
 
-@router.get("/rig", response_model=RigStatus, tags=["rig"], summary="the rig, its state and health")
+@_route("rig_status", response_model=RigStatus)
 def rig_status(request: Request, who: Viewer) -> RigStatus:
     worker = _worker(request)
     config: RigConfig = worker.config
@@ -247,9 +258,7 @@ async def _operator_now(
     return auth.require(Role.OPERATOR)(who)
 
 
-@router.post(
-    "/rig/stop", response_model=RigStatus, status_code=202, tags=["rig"], summary="stop everything now"
-)
+@_route("stop", response_model=RigStatus)
 async def rig_stop(request: Request, who: Annotated[Principal, Depends(_operator_now)]) -> RigStatus:
     worker = _worker(request)
     why = f"quick stop by {who.name}"
@@ -260,92 +269,58 @@ async def rig_stop(request: Request, who: Annotated[Principal, Depends(_operator
     return status
 
 
-@router.post("/rig/reset", response_model=RigStatus, tags=["rig"], summary="leave the faulted state")
+@_route("reset", response_model=RigStatus)
 def rig_reset(request: Request, who: Operator) -> RigStatus:
     _worker(request).reset()
     _audit(request, who, "reset", _worker(request).config.name)
     return rig_status(request, who)
 
 
-@router.get("/experiments", response_model=list[ExperimentInfo], tags=["runs"], summary="the experiments")
+@_route("list_experiments", response_model=list[ExperimentInfo])
 def experiments(who: Viewer) -> list[ExperimentInfo]:
     return actions.list_experiments()
 
 
-@router.get("/models", tags=["fits"], summary="the models a run or a fit can name: presets and uploaded")
+@_route("list_models")
 def models(request: Request, who: Viewer) -> list[dict[str, Any]]:
-    store = _store(request)
-    kept = []
-    for name in store.model_names():
-        if name in preset_names():
-            continue
-        model = load_model(_kept_model(store, name))
-        kept.append(ModelSummary(name=name, effects=list(model.effects), description=model.description))
-    return [m.as_json() for m in [*actions.list_models(), *kept]]
+    return [m.as_json() for m in actions.list_kept_models(_store(request))]
 
 
-@router.get("/models/{name}", tags=["fits"], summary="one model as a model file (`hdrig model show --json`)")
+@_route("show_model")
 def model(
     name: Annotated[str, PathParam(description="a preset's or an uploaded model's name", max_length=200)],
     request: Request,
     who: Viewer,
 ) -> dict[str, Any]:
-    try:
-        ref = model_ref(_store(request), name, "name")
-    except ProblemError:  # names only: a path would read files of the server
-        raise ProblemError(404, f"unknown model {name[:80]!r} (GET /api/v1/models lists them)") from None
+    ref = actions.kept_model(_store(request), name)
+    if ref is None:  # names only: a path would read files of the server
+        raise ProblemError(404, f"unknown model {name[:80]!r} (GET /api/v1/models lists them)")
     return actions.show_model(ref)
 
 
-class ModelUpload(BaseModel):
-    """A model file's content, kept in the store under `name` for runs and fits to name."""
-
-    model_config = ConfigDict(extra="forbid")
-    name: str = Field(
-        pattern=f"^{MODEL_NAME_PATTERN.pattern}$",
-        max_length=64,
-        description="1-64 letters, digits, '_' or '-': what runs (`params.model`) and fits (`model`) name",
-    )
-    model: dict[str, Any] = Field(description="the model file's content (as `GET /api/v1/models/{name}`)")
-
-
-@router.post(
-    "/models",
-    status_code=201,
-    tags=["fits"],
-    summary="upload a model (kept by name; 409 when the name is taken)",
-)
+@_route("upload_model")
 def upload_model(body: ModelUpload, request: Request, response: Response, who: Operator) -> dict[str, Any]:
-    store = _store(request)
-    if body.name in preset_names() or store.model_file(body.name) is not None:
-        raise ProblemError(409, f"model name {body.name!r} is taken (GET /api/v1/models lists them)")
     try:
-        parsed = parse_model(body.model, "body.model")
-    except UserInputError as exc:
-        message = str(exc)[:500]
-        raise ProblemError(422, message, [FieldError(field="body.model", message=message)]) from None
-    try:
-        store.keep_model(body.name, yaml.safe_dump(parsed.to_dict(), sort_keys=False))
-    except UserInputError as exc:  # taken meanwhile by another upload
-        raise ProblemError(409, str(exc)) from None
+        kept = actions.keep_model(_store(request), body.name, body.model, "body.model")
+    except actions.FieldInputError as exc:
+        raise _field_problem(exc, "body") from None
     _audit(request, who, "model.upload", body.name)
     response.headers["Location"] = f"{API}/models/{body.name}"
-    return parsed.to_dict()
+    return kept
 
 
-def _kept_model(store: RunStore, name: str) -> str:
-    path = store.model_file(name)
-    assert path is not None, name
-    return str(path)
+def _field_problem(exc: actions.FieldInputError, where: Literal["body", "query"]) -> ProblemError:
+    """A 422 naming the request's field the core named (`body.model`, `query.columns`)."""
+    message = str(exc)
+    return ProblemError(422, message, [FieldError(field=f"{where}.{exc.field}", message=message)])
 
 
 def model_ref(store: RunStore, name: str, field: str) -> str:
-    """What the core loads for a model a client named: a preset's name, or the file the store keeps for
-    an uploaded one. Anything else (a path above all) is a 422 naming the field; no file is looked at."""
-    if name in preset_names():
-        return name
-    if store.model_file(name) is not None:
-        return _kept_model(store, name)
+    """What the core loads for a model a client named (`actions.kept_model`); anything else (a path above
+    all) is a 422 naming the field; no file is looked at."""
+    ref = actions.kept_model(store, name)
+    if ref is not None:
+        return ref
     message = (
         f"{field}: unknown model {name[:80]!r}: name a preset ({', '.join(preset_names())}) or a model"
         " uploaded with POST /api/v1/models (files on the server are not named over HTTP)"
@@ -353,13 +328,7 @@ def model_ref(store: RunStore, name: str, field: str) -> str:
     raise ProblemError(422, message, [FieldError(field=field, message=message)])
 
 
-@router.post(
-    "/runs",
-    response_model=RunDocument | JobDocument,
-    status_code=202,
-    tags=["runs"],
-    summary="start an experiment (or the campaign)",
-)
+@_route("start_run", response_model=RunDocument | JobDocument)
 def start_run(
     body: RunRequest, request: Request, response: Response, who: Operator
 ) -> RunDocument | JobDocument:
@@ -368,14 +337,7 @@ def start_run(
         params = {**params, "model": model_ref(_store(request), params["model"], "body.params.model")}
     worker = _worker(request)
     try:  # the whole plan, built against this rig, before anything moves
-        plan = actions.plan_run(
-            body.experiment,
-            params,
-            keep_going=body.keep_going,
-            unit=body.unit,
-            tags=body.tags,
-            rig=worker.rig,
-        )
+        plan = operations.plan_of(body.model_copy(update={"params": params}), worker.rig)
     except UserInputError as exc:
         raise _named(exc, body) from None
     waiting = sum(job.status == JobStatus.QUEUED for job in worker.jobs())
@@ -422,83 +384,29 @@ PAGE_HEADERS: dict[str, Any] = {
 }
 
 
-@router.get(
-    "/runs",
+@_route(
+    "list_runs",
     response_model=list[RunDocument],
-    tags=["runs"],
-    summary="the catalog, a page at a time, and queued runs",
     responses={200: {"description": "a page of runs, oldest first", "headers": PAGE_HEADERS}},
 )
 def runs(
-    request: Request,
-    response: Response,
-    who: Viewer,
-    unit: Annotated[
-        str | None, Query(max_length=100, description="gear unit serial, exact or a glob (HD25-*)")
-    ] = None,
-    rig: Annotated[str | None, Query(max_length=100, description="rig name, exact or a glob")] = None,
-    tag: Annotated[
-        list[str] | None, Query(max_length=100, description="a tag every run listed carries")
-    ] = None,
-    operator: Annotated[
-        str | None, Query(max_length=100, description="who started it, exact or a glob")
-    ] = None,
-    experiment: Annotated[
-        str | None, Query(max_length=100, description="the experiment, exact or a glob")
-    ] = None,
-    status: Annotated[
-        RunStatus | None,
-        Query(description="only runs with this status (`queued`: those waiting for the rig)"),
-    ] = None,
-    limit: Annotated[
-        int,
-        Query(ge=1, le=MAX_PAGE, description=f"runs in the page (the newest before `cursor`), 1-{MAX_PAGE}"),
-    ] = DEFAULT_PAGE,
-    cursor: Annotated[
-        str | None,
-        Query(
-            max_length=1000, description='where the page begins: from the previous page\'s `Link: rel="next"`'
-        ),
-    ] = None,
+    request: Request, response: Response, who: Viewer, query: Annotated[RunListQuery, Query()]
 ) -> list[RunDocument]:
-    worker = _worker(request)
-    page = actions.list_runs(
-        _store(request), unit, rig, tag or (), operator, experiment, status, limit=limit, cursor=cursor
-    )
-    owners = {run_id: job.owner for job in worker.jobs() for run_id in job.runs}
-    listed: dict[str, RunDocument] = {}
-    for document in page.runs:
-        live = worker.live_run(document.id) if document.status == RunStatus.RUNNING else None
-        if live is not None:
-            live.samples = document.samples
-        listed[document.id] = live or document
-        listed[document.id].owner = owners.get(document.id)
-    # Queued runs have no catalog entry to search or page through yet: the newest runs, on the first page.
-    searched = any(v is not None for v in (unit, rig, tag, operator, experiment))
-    waiting: list[RunDocument] = []
-    for job in [] if searched or status not in (None, RunStatus.QUEUED) else worker.jobs():
-        if job.status == JobStatus.QUEUED:
-            found = (worker.live_run(run_id) for run_id in job.runs if run_id not in listed)
-            waiting += [run for run in found if run is not None]
-    if cursor is None:
-        listed.update((run.id, run) for run in waiting)
-    queued = len(waiting)
-    response.headers["X-Total-Count"] = str(page.total + queued)
+    page = _worker(request).runs_page(query, limit=query.limit, cursor=query.cursor)
+    response.headers["X-Total-Count"] = str(page.total)
     if page.next_cursor is not None:
         params = [(k, v) for k, v in request.query_params.multi_items() if k != "cursor"]
         older = request.url.replace(query=urlencode([*params, ("cursor", page.next_cursor)]))
         response.headers["Link"] = f'<{older}>; rel="next"'
-    return list(listed.values())
+    return page.runs
 
 
-@router.get("/runs/{run_id}", response_model=RunDocument, tags=["runs"], summary="one run")
+@_route("show_run", response_model=RunDocument)
 def run(run_id: RunId, request: Request, who: Viewer) -> RunDocument:
     return _run(request, run_id)
 
 
-@router.post(
-    "/runs/{run_id}/abort", response_model=RunDocument, status_code=202, tags=["runs"], summary="stop a run"
-)
+@_route("abort_run", response_model=RunDocument)
 def abort_run(run_id: RunId, request: Request, who: Operator) -> RunDocument:
     worker = _worker(request)
     job = next((j for j in worker.jobs() if run_id in j.runs and not j.status.finished), None)
@@ -510,10 +418,8 @@ def abort_run(run_id: RunId, request: Request, who: Operator) -> RunDocument:
     return _run(request, run_id)
 
 
-@router.get(
-    "/runs/{run_id}/data",
-    tags=["runs"],
-    summary="the run's samples as a file",
+@_route(
+    "export_run",
     response_class=FileResponse,
     responses={200: {"content": {t: {} for t in MEDIA_TYPES.values()}, "description": "the samples"}},
 )
@@ -529,24 +435,16 @@ def run_data(
     t1: Annotated[float | None, Query(description="last time to include [s]", allow_inf_nan=False)] = None,
 ) -> FileResponse:
     assert format in EXPORT_FORMATS
-    _run(request, run_id)  # 404 when unknown; a dead writer's run is sealed first
-    data = _store(request).read(run_id)
-    names = list(data.columns)
-    if columns:
-        asked = [c.strip() for c in columns.split(",") if c.strip()]
-        unknown = [c for c in asked if c not in data.columns]
-        if unknown:
-            message = f"columns: no column {unknown[0]!r} in run {run_id} (it has {', '.join(names)})"
-            raise ProblemError(422, message, [FieldError(field="query.columns", message=message)])
-        names = ["t", *[c for c in dict.fromkeys(asked) if c != "t"]]
-    if t0 is not None and t1 is not None and t1 < t0:
-        message = f"t1={t1} is before t0={t0}"
-        raise ProblemError(422, message, [FieldError(field="query.t1", message=message)])
-    t = data.columns["t"]
-    keep = (t >= (t0 if t0 is not None else -float("inf"))) & (t <= (t1 if t1 is not None else float("inf")))
-    selected = {name: data.columns[name][keep] for name in names}
+    _run(request, run_id)  # 404 when unknown (a queued run too: it has no samples yet)
+    asked = [c.strip() for c in columns.split(",") if c.strip()] if columns else None
     folder = Path(tempfile.mkdtemp(prefix="hdrig-download-"))
-    path = write_columns(selected, data.meta, folder / f"{run_id}.{format}")
+    try:
+        path = actions.download_run(_store(request), run_id, format, folder, asked, t0, t1)
+    except UserInputError as exc:
+        shutil.rmtree(folder, ignore_errors=True)
+        if isinstance(exc, actions.FieldInputError):
+            raise _field_problem(exc, "query") from None
+        raise
     return FileResponse(
         path,
         media_type=MEDIA_TYPES[format],
@@ -555,27 +453,20 @@ def run_data(
     )
 
 
-@router.get("/runs/{run_id}/artifacts", response_model=FileList, tags=["runs"], summary="the run's artifacts")
+@_route("run_artifacts", response_model=FileList)
 def run_artifacts(run_id: RunId, request: Request, who: Viewer) -> FileList:
     _run(request, run_id)
     return FileList(files=_files(_store(request).run_dir(run_id) / ARTIFACTS_DIR))
 
 
-@router.get(
-    "/runs/{run_id}/artifacts/{path:path}",
-    tags=["runs"],
-    summary="one artifact (a table, results.json, a plot)",
-    response_class=FileResponse,
-)
+@_route("run_artifact", response_class=FileResponse)
 def run_artifact(run_id: RunId, path: str, request: Request, who: Viewer) -> FileResponse:
     _run(request, run_id)
     return FileResponse(_inside(_store(request).run_dir(run_id) / ARTIFACTS_DIR, path))
 
 
-@router.get(
-    "/runs/{run_id}/events",
-    tags=["runs"],
-    summary="Server-Sent Events of a run: state, progress, samples, alarm, run",
+@_route(
+    "run_events",
     response_class=StreamingResponse,
     responses={200: {"content": {"text/event-stream": {}}, "description": "the event stream"}},
 )
@@ -662,27 +553,19 @@ def _clean(value: Any) -> Any:
 # ---- jobs, fits and gaps ------------------------------------------------------------------------------
 
 
-@router.get(
-    "/jobs", response_model=list[JobDocument], tags=["jobs"], summary="every job: runs, campaigns, fits, gaps"
-)
+@_route("list_jobs", response_model=list[JobDocument])
 def jobs(
     request: Request,
     who: Viewer,
-    limit: Annotated[
-        int, Query(ge=1, le=MAX_PAGE, description=f"the newest jobs, oldest first, 1-{MAX_PAGE}")
-    ] = MAX_PAGE,
+    limit: JobsLimit = MAX_PAGE,
 ) -> list[JobDocument]:
     every = sorted([*_worker(request).jobs(), *_analysis(request).jobs()], key=lambda job: job.created)
     return [job.document() for job in every[-limit:]]
 
 
-@router.get("/jobs/{job_id}", response_model=JobDocument, tags=["jobs"], summary="one job")
+@_route("show_job", response_model=JobDocument)
 def job(job_id: JobId, request: Request, who: Viewer) -> JobDocument:
     return _job(request, job_id).document()
-
-
-def _analysis_folder(request: Request, job_id: str) -> Path:
-    return _store(request).home / actions.ANALYSES_DIR / job_id
 
 
 def _start_analysis(
@@ -693,103 +576,72 @@ def _start_analysis(
     for ref in body.data:
         if ref != "latest":
             store.get(ref)  # 404 naming the unknown run; files on the server are not the service's to read
-    action = actions.fit if kind == JobKind.FIT else actions.find_gaps
+    operation = operations.operation(kind)
     data = list(body.data)
 
     def work(progress: Any, job_id: str) -> Any:
-        report = _analysis_folder(request, job_id) / REPORT_DIR
-        return action(data, model, store, report_dir=report, progress=progress, analysis_id=job_id)
+        report = actions.analysis_folder(store, job_id) / REPORT_DIR
+        return operation.call(data, model, store, report_dir=report, progress=progress, analysis_id=job_id)
 
     job = _analysis(request).submit(kind, body.model_dump(mode="json"), work, owner=who.name)
     _audit(request, who, str(kind), job.id, json.dumps(body.model_dump(mode="json")))
-    _accepted(response, f"{API}/{'fits' if kind == JobKind.FIT else 'gaps'}/{job.id}")
+    assert operation.rest is not None
+    _accepted(response, f"{API}{operation.rest[1]}/{job.id}")
     return job.document()
 
 
 def _analysis_job(request: Request, job_id: str, kind: JobKind) -> JobDocument:
+    """The job of this service, or an analysis of this kind that ended before it started (404 if neither)."""
     try:
         found = _analysis(request).job(job_id)
     except UnknownJobError:
-        found = None
-    if found is not None and found.kind == kind:
-        return found.document()
-    result = _analysis_folder(request, job_id) / actions.RESULT_FILE
-    if found is None and f"-{kind}-" in job_id and result.is_file():  # done before this service started
-        document = json.loads(result.read_text())
-        created = result.stat().st_mtime
-        from datetime import UTC, datetime
-
-        when = datetime.fromtimestamp(created, UTC)
-        return JobDocument(
-            id=job_id, kind=kind, status=JobStatus.COMPLETE, created=when, ended=when, result=document
-        )
+        finished = actions.finished_analysis(_store(request), job_id, kind)
+        if finished is not None:
+            return finished
+    else:
+        if found.kind == kind:
+            return found.document()
     raise ProblemError(404, f"unknown {kind} job id {job_id!r}")
 
 
-@router.post("/fits", response_model=JobDocument, status_code=202, tags=["fits"], summary="start a fit")
-def start_fit(body: AnalysisRequest, request: Request, response: Response, who: Operator) -> JobDocument:
-    return _start_analysis(request, response, who, JobKind.FIT, body)
+def _analysis_routes(kind: JobKind) -> None:
+    """The routes of a fit and of a gap analysis, alike: start one, its job, its files, one file."""
+
+    def start(body: AnalysisRequest, request: Request, response: Response, who: Operator) -> JobDocument:
+        return _start_analysis(request, response, who, kind, body)
+
+    def job(job_id: JobId, request: Request, who: Viewer) -> JobDocument:
+        return _analysis_job(request, job_id, kind)
+
+    def files(job_id: JobId, request: Request, who: Viewer) -> FileList:
+        _analysis_job(request, job_id, kind)
+        return FileList(files=_files(actions.analysis_folder(_store(request), job_id)))
+
+    def file(job_id: JobId, path: str, request: Request, who: Viewer) -> FileResponse:
+        _analysis_job(request, job_id, kind)
+        return FileResponse(_inside(actions.analysis_folder(_store(request), job_id), path))
+
+    # Named as the routes were when written out one by one: their OpenAPI operation ids stay the same.
+    for route, name, options in (
+        (start, f"start_{kind}", {"response_model": JobDocument}),
+        (job, f"{kind}_job", {"response_model": JobDocument}),
+        (files, f"{kind}_files", {"response_model": FileList}),
+        (file, f"{kind}_file", {"response_class": FileResponse}),
+    ):
+        route.__name__ = name
+        _route(str(kind) if name.startswith("start_") else name, **options)(route)
 
 
-@router.get("/fits/{job_id}", response_model=JobDocument, tags=["fits"], summary="a fit job and its result")
-def fit_job(job_id: JobId, request: Request, who: Viewer) -> JobDocument:
-    return _analysis_job(request, job_id, JobKind.FIT)
-
-
-@router.get("/fits/{job_id}/files", response_model=FileList, tags=["fits"], summary="a fit's files")
-def fit_files(job_id: JobId, request: Request, who: Viewer) -> FileList:
-    _analysis_job(request, job_id, JobKind.FIT)
-    return FileList(files=_files(_analysis_folder(request, job_id)))
-
-
-@router.get(
-    "/fits/{job_id}/files/{path:path}",
-    response_class=FileResponse,
-    tags=["fits"],
-    summary="one file of a fit",
-)
-def fit_file(job_id: JobId, path: str, request: Request, who: Viewer) -> FileResponse:
-    _analysis_job(request, job_id, JobKind.FIT)
-    return FileResponse(_inside(_analysis_folder(request, job_id), path))
-
-
-@router.post(
-    "/gaps", response_model=JobDocument, status_code=202, tags=["gaps"], summary="start a gap analysis"
-)
-def start_gaps(body: AnalysisRequest, request: Request, response: Response, who: Operator) -> JobDocument:
-    return _start_analysis(request, response, who, JobKind.GAPS, body)
-
-
-@router.get("/gaps/{job_id}", response_model=JobDocument, tags=["gaps"], summary="a gap job and its result")
-def gaps_job(job_id: JobId, request: Request, who: Viewer) -> JobDocument:
-    return _analysis_job(request, job_id, JobKind.GAPS)
-
-
-@router.get("/gaps/{job_id}/files", response_model=FileList, tags=["gaps"], summary="a gap analysis' files")
-def gaps_files(job_id: JobId, request: Request, who: Viewer) -> FileList:
-    _analysis_job(request, job_id, JobKind.GAPS)
-    return FileList(files=_files(_analysis_folder(request, job_id)))
-
-
-@router.get(
-    "/gaps/{job_id}/files/{path:path}",
-    response_class=FileResponse,
-    tags=["gaps"],
-    summary="one file of a gap analysis",
-)
-def gaps_file(job_id: JobId, path: str, request: Request, who: Viewer) -> FileResponse:
-    _analysis_job(request, job_id, JobKind.GAPS)
-    return FileResponse(_inside(_analysis_folder(request, job_id), path))
+for _kind in (JobKind.FIT, JobKind.GAPS):
+    _analysis_routes(_kind)
 
 
 # ---- keys and the audit log (admin) -------------------------------------------------------------------
 
 
-@router.get(
-    "/keys",
+@_route(
+    "list_keys",
     response_model=list[KeyInfo],
-    tags=["admin"],
-    summary="every API key (never the key), oldest first",
     responses={
         200: {
             "description": "every key, live and revoked, oldest first",
@@ -808,12 +660,9 @@ def keys(request: Request, who: Admin) -> list[KeyInfo]:
     return access.list_keys(_store(request))
 
 
-@router.post(
-    "/keys",
+@_route(
+    "create_key",
     response_model=NewKey,
-    status_code=201,
-    tags=["admin"],
-    summary="make a key (shown once)",
     responses={
         201: {
             "description": "the key, shown this once",
@@ -832,9 +681,7 @@ def create_key(body: KeyRequest, request: Request, who: Admin) -> NewKey:
     return NewKey(name=name, role=body.role, key=token)  # audited by make_key, in its transaction
 
 
-@router.delete(
-    "/keys/{name}", response_model=KeyInfo, tags=["admin"], summary="revoke a key (409: the last admin key)"
-)
+@_route("revoke_key", response_model=KeyInfo)
 def revoke_key(name: Annotated[str, PathParam(max_length=200)], request: Request, who: Admin) -> KeyInfo:
     store = _store(request)
     if name not in {key.name for key in access.list_keys(store)}:
@@ -845,13 +692,11 @@ def revoke_key(name: Annotated[str, PathParam(max_length=200)], request: Request
         raise ProblemError(409, str(exc)) from None
 
 
-@router.get("/audit", response_model=list[AuditEntry], tags=["admin"], summary="who did what, when")
+@_route("audit", response_model=list[AuditEntry])
 def audit(
     request: Request,
     who: Admin,
-    limit: Annotated[
-        int, Query(ge=1, le=AUDIT_PAGE_MAX, description=f"newest lines, 1-{AUDIT_PAGE_MAX}")
-    ] = 100,
+    limit: AuditLimit = 100,
 ) -> list[AuditEntry]:
     return access.audit_log(_store(request), limit)
 
@@ -919,6 +764,19 @@ def create_app(rig_config: RigConfig, store: RunStore) -> FastAPI:
     # Outermost: every JSON answer, errors included, leaves without the server's paths.
     app.add_middleware(HideServerPaths, scrubber=PathScrubber(store.home, store.models_dir))
     return app
+
+
+class _Served:
+    """This service, as `hdrig serve` finds it (`rig.lab.BUILTIN_SERVICE_DOORS`)."""
+
+    def create_app(self, config: RigConfig, store: RunStore) -> FastAPI:
+        return create_app(config, store)
+
+    def stop_service(self, app: Any, why: str) -> None:
+        stop_service(app, why)
+
+
+SERVED_APP: ServedApp = _Served()
 
 
 def _openapi(app: FastAPI) -> dict[str, Any]:

@@ -27,9 +27,19 @@ from typing import Any, Literal
 import httpx
 
 from model.errors import UserInputError
-from rig.core.documents import ExperimentInfo, JobDocument, JobStatus, ModelSummary, RunDocument, RunPage
+from rig.core.documents import (
+    ExperimentInfo,
+    JobDocument,
+    JobKind,
+    JobStatus,
+    ModelSummary,
+    RunDocument,
+    RunPage,
+)
+from rig.core.operations import AnalysisRequest, RunRequest, operation
 from rig.status import RunStatus
 from rig.store.catalog import DEFAULT_PAGE, MAX_PAGE
+from rig.store.runs import RunQuery, query_of
 
 API = "/api/v1"
 TIMEOUT_S = 30.0  # one request's connect/read limit; a download or a stream reads in pieces within it
@@ -128,17 +138,20 @@ class HdrigClient:
     def _post(self, path: str, body: dict[str, Any] | None = None) -> Any:
         return self._request("POST", path, json=body).json()
 
+    def _object(self, method: str, path: str) -> dict[str, Any]:
+        """A route's JSON object, no parameters asked."""
+        answer: dict[str, Any] = self._request(method, path).json()
+        return answer
+
     # ---- the rig and what it offers ---------------------------------------------------------------
 
     def health(self) -> dict[str, Any]:
         """`{"status": "ok"}` (needs no key)."""
-        answer: dict[str, Any] = self._get("/health")
-        return answer
+        return self._object("GET", "/health")
 
     def rig(self) -> dict[str, Any]:
         """The rig: name, backend, mode (sim/hardware), state, health, limits, the current run."""
-        answer: dict[str, Any] = self._get("/rig")
-        return answer
+        return self._object("GET", "/rig")
 
     def experiments(self) -> list[ExperimentInfo]:
         return [ExperimentInfo.model_validate(e) for e in self._get("/experiments")]
@@ -148,72 +161,50 @@ class HdrigClient:
 
     def model(self, name: str) -> dict[str, Any]:
         """A preset as a model file's content (`hdrig model show NAME --json`)."""
-        answer: dict[str, Any] = self._get(f"/models/{name}")
-        return answer
+        return self._object("GET", f"/models/{name}")
 
     def stop(self) -> dict[str, Any]:
         """Stop everything now (the rig quick-stops, the queue is cancelled); always accepted."""
-        answer: dict[str, Any] = self._post("/rig/stop")
-        return answer
+        return self._object("POST", "/rig/stop")
 
     # ---- runs ---------------------------------------------------------------------------------------
 
-    def start_run(
-        self,
-        experiment: str,
-        params: dict[str, Any] | None = None,
-        queue: bool = False,
-        keep_going: bool = False,
-        unit: str | None = None,
-        tags: Sequence[str] = (),
-    ) -> RunDocument | JobDocument:
-        """Start an experiment: its run's document (status queued or running). The campaign answers
-        with its job's document. A busy rig raises ServiceInputError 409 unless `queue`. `unit`: the gear
-        on the bench (default: the rig file's); `tags`: free tags for the catalog."""
-        body: dict[str, Any] = {
-            "experiment": experiment,
-            "params": params or {},
-            "queue": queue,
-            "keep_going": keep_going,
-            "tags": list(tags),
-        }
-        if unit is not None:
-            body["unit"] = unit
-        answer = self._post("/runs", body)
+    def reset(self) -> dict[str, Any]:
+        """Leave the faulted state (operator)."""
+        return self._object("POST", "/rig/reset")
+
+    # ---- runs ---------------------------------------------------------------------------------------
+
+    def start(self, request: RunRequest) -> RunDocument | JobDocument:
+        """Start an experiment: its run's document (status queued or running); the campaign answers with
+        its job's document. A busy rig raises ServiceInputError 409 unless `request.queue`."""
+        answer = self._post(_path("start_run"), request.model_dump(mode="json", exclude_none=True))
         if "kind" in answer:
             return JobDocument.model_validate(answer)
         return RunDocument.model_validate(answer)
 
+    def start_run(
+        self, experiment: str, params: dict[str, Any] | None = None, **options: Any
+    ) -> RunDocument | JobDocument:
+        """`start` with the request's fields by name: `queue`, `keep_going`, `unit` (the gear on the bench;
+        default: the rig file's), `tags` (free tags for the catalog). The service judges the values."""
+        fields = {"experiment": experiment, "params": params or {}, "tags": [], **options}
+        return self.start(RunRequest.model_construct(**{**fields, "tags": list(fields["tags"])}))
+
     def runs_page(
         self,
-        unit: str | None = None,
-        rig: str | None = None,
-        tags: Sequence[str] = (),
-        operator: str | None = None,
-        experiment: str | None = None,
-        status: str | None = None,
+        query: RunQuery | None = None,
         limit: int = DEFAULT_PAGE,
         cursor: str | None = None,
+        **filters: Any,
     ) -> RunPage:
         """One page of the catalog (one request): the newest `limit` runs (1 to 1000) before `cursor` (a
-        page's `next_cursor`; None: from the newest), oldest first, the runs of a unit, rig, operator or
-        experiment (exact or a glob such as `HD25-*`) with a status and every one of `tags`. Queued runs
-        come on the first page of an unfiltered listing."""
-        query: list[tuple[str, str | int]] = [("tag", t) for t in tags]  # repeated: a list, not a dict
-        query += [
-            (k, v)
-            for k, v in (
-                ("unit", unit),
-                ("rig", rig),
-                ("operator", operator),
-                ("experiment", experiment),
-                ("status", status),
-                ("limit", limit),
-                ("cursor", cursor),
-            )
-            if v is not None
-        ]
-        response = self._request("GET", "/runs", params=query)
+        page's `next_cursor`; None: from the newest) that `query` (or its fields by name) selects, oldest
+        first. Queued runs come on the first page of an unfiltered listing."""
+        asked = query_of(query, filters).model_dump(by_alias=True, exclude_none=True)
+        pairs: list[tuple[str, str | int]] = [("tag", t) for t in asked.pop("tag", [])]  # repeated
+        pairs += [*asked.items(), ("limit", limit)] + ([("cursor", cursor)] if cursor is not None else [])
+        response = self._request("GET", _path("list_runs"), params=pairs)
         runs = [RunDocument.model_validate(r) for r in response.json()]
         older = response.links.get("next", {}).get("url")
         return RunPage(
@@ -222,24 +213,16 @@ class HdrigClient:
             next_cursor=httpx.URL(older).params.get("cursor") if older else None,
         )
 
-    def newest_runs(
-        self,
-        unit: str | None = None,
-        rig: str | None = None,
-        tags: Sequence[str] = (),
-        operator: str | None = None,
-        experiment: str | None = None,
-        status: str | None = None,
-        limit: int | None = None,
-    ) -> RunPage:
-        """The newest `limit` runs of the catalog (every one when None), oldest first, read a page at a
-        time (filters as `runs_page`); `total` counts all the filters select, `next_cursor` the older rest.
-        Runs added meanwhile are newer than the first page: no run is listed twice or left out."""
+    def newest_runs(self, query: RunQuery | None = None, limit: int | None = None, **filters: Any) -> RunPage:
+        """The newest `limit` runs of the catalog (every one when None) that `query` (or its fields by name)
+        selects, oldest first, read a page at a time; `total` counts all it selects, `next_cursor` the
+        older rest. Runs added meanwhile are newer than the first page: no run is listed twice or left out."""
+        query = query_of(query, filters)
         pages: list[list[RunDocument]] = []
         total, cursor, got = 0, None, 0
         while limit is None or got < limit:
             size = MAX_PAGE if limit is None else min(MAX_PAGE, limit - got)
-            page = self.runs_page(unit, rig, tags, operator, experiment, status, size, cursor)
+            page = self.runs_page(query, size, cursor)
             total = total if pages else page.total
             pages.append(page.runs)
             got += sum(run.status != RunStatus.QUEUED for run in page.runs)  # the queue is not paged
@@ -251,16 +234,11 @@ class HdrigClient:
         )
 
     def runs(
-        self,
-        unit: str | None = None,
-        rig: str | None = None,
-        tags: Sequence[str] = (),
-        operator: str | None = None,
-        limit: int | None = None,
+        self, query: RunQuery | None = None, limit: int | None = None, **filters: Any
     ) -> list[RunDocument]:
-        """The catalog (the newest `limit` runs; every one when None), oldest first, or the runs of a unit,
-        rig or operator (exact or a glob such as `HD25-*`) that carry every one of `tags`."""
-        return self.newest_runs(unit=unit, rig=rig, tags=tags, operator=operator, limit=limit).runs
+        """The runs `query` (or its fields by name: `unit="HD25-*"`, `tags=[...]`) selects, oldest first:
+        the newest `limit` (every one when None)."""
+        return self.newest_runs(query, limit, **filters).runs
 
     def run(self, run_id: str) -> RunDocument:
         return RunDocument.model_validate(self._get(f"/runs/{run_id}"))
@@ -355,19 +333,23 @@ class HdrigClient:
 
     # ---- jobs: fits and gap analyses ----------------------------------------------------------------
 
+    def analysis(self, kind: JobKind, request: AnalysisRequest) -> JobDocument:
+        """Start a fit or a gap analysis: its job's document (queued or running)."""
+        return JobDocument.model_validate(self._post(_path(str(kind)), request.model_dump(mode="json")))
+
     def fit(
         self, data: Sequence[str], model: str, wait: bool = True, timeout_s: float | None = None
     ) -> JobDocument:
         """A fit of `model` (a preset) to runs (ids, or `latest`). With `wait`, the finished job:
         `.result` is `hdrig fit --json`'s document; `files("fits", id)` lists its model and report."""
-        job = JobDocument.model_validate(self._post("/fits", {"data": list(data), "model": model}))
+        job = self.analysis(JobKind.FIT, AnalysisRequest.model_construct(data=list(data), model=model))
         return self.wait_job(job.id, timeout_s) if wait else job
 
     def gaps(
         self, data: Sequence[str], model: str, wait: bool = True, timeout_s: float | None = None
     ) -> JobDocument:
         """The model-gap workflow on runs; with `wait`, `.result` is `hdrig gaps --json`'s document."""
-        job = JobDocument.model_validate(self._post("/gaps", {"data": list(data), "model": model}))
+        job = self.analysis(JobKind.GAPS, AnalysisRequest.model_construct(data=list(data), model=model))
         return self.wait_job(job.id, timeout_s) if wait else job
 
     def jobs(self) -> list[JobDocument]:
@@ -393,6 +375,13 @@ class HdrigClient:
         path = Path(out)
         self._save(f"/{kind}/{job_id}/files/{name}", path)
         return path
+
+
+def _path(name: str) -> str:
+    """The route of the operation `name` under /api/v1, from the action table."""
+    route = operation(name).rest
+    assert route is not None, f"operation {name} has no route"
+    return route[1]
 
 
 def _sleep_before(deadline: float | None, what: str) -> None:

@@ -19,22 +19,14 @@ from typing import Any, Literal
 from api.client import POLL_S, HdrigClient, ServiceError, ServiceInputError
 from model.errors import UserInputError
 from model.run import Run
+from rig.core import documents as doc
 from rig.core.actions import MODEL_FILE
-from rig.core.documents import (
-    ExperimentInfo,
-    FitDocument,
-    GapsDocument,
-    JobDocument,
-    JobStatus,
-    ModelSummary,
-    RunDocument,
-    RunPage,
-)
+from rig.core.operations import AnalysisOrder, AnalysisRequest, RunRequest
 from rig.faults import DeviceFaultError
 from rig.lab import Landed
 from rig.store.catalog import DEFAULT_PAGE
 from rig.store.runfile import read_parquet
-from rig.store.runs import export_path
+from rig.store.runs import RunQuery, export_path
 
 Progress = Callable[[str, float], None]  # rig.runner.Progress: (phase, fraction done)
 REPORT_FOLDER = "report"  # where the service writes an analysis' report inside its folder (api.app)
@@ -51,33 +43,25 @@ class RemoteLab:
 
     # ---- models and experiments ---------------------------------------------------------------------
 
-    def list_models(self) -> list[ModelSummary]:
+    def list_models(self) -> list[doc.ModelSummary]:
         return self.client.models()
 
     def show_model(self, name_or_file: str) -> dict[str, Any]:
         _not_a_file(name_or_file, "model")
         return self.client.model(name_or_file)
 
-    def list_experiments(self) -> list[ExperimentInfo]:
+    def list_experiments(self) -> list[doc.ExperimentInfo]:
         return self.client.experiments()
 
     # ---- runs ---------------------------------------------------------------------------------------
 
     def run(
-        self,
-        experiment: str,
-        params: dict[str, Any],
-        rig: str | None,
-        keep_going: bool,
-        progress: Progress,
-        landed: Landed,
-        unit: str | None = None,
-        tags: Sequence[str] = (),
-    ) -> list[RunDocument]:
+        self, request: RunRequest, rig: str | None, progress: Progress, landed: Landed
+    ) -> list[doc.RunDocument]:
         if rig is not None:
             self._check_rig(rig)
-        started = self.client.start_run(experiment, params, keep_going=keep_going, unit=unit, tags=tags)
-        runs: list[RunDocument] = []
+        started = self.client.start(request)
+        runs: list[doc.RunDocument] = []
         try:
             job = self._follow(started.id, progress, runs, landed)
         except KeyboardInterrupt:
@@ -86,7 +70,7 @@ class RemoteLab:
                 self._abort(job.runs[-1])  # the motor first; the run then ends `aborted` with its data
             self._follow(started.id, progress, runs, landed)
             raise
-        if job.error is not None and not (runs and job.status == JobStatus.ABORTED):
+        if job.error is not None and not (runs and job.status == doc.JobStatus.ABORTED):
             raise _job_error(job)
         return runs
 
@@ -104,8 +88,8 @@ class RemoteLab:
                 raise
 
     def _follow(
-        self, job_id: str, progress: Progress, runs: list[RunDocument], landed: Landed
-    ) -> JobDocument:
+        self, job_id: str, progress: Progress, runs: list[doc.RunDocument], landed: Landed
+    ) -> doc.JobDocument:
         """Poll the job until it ends: its progress, and each of its runs once it has ended."""
         while True:
             job = self.client.job(job_id)
@@ -122,19 +106,10 @@ class RemoteLab:
                 return job
             time.sleep(POLL_S)
 
-    def list_runs(
-        self,
-        unit: str | None = None,
-        rig: str | None = None,
-        tags: Sequence[str] = (),
-        operator: str | None = None,
-        experiment: str | None = None,
-        status: str | None = None,
-        limit: int | None = DEFAULT_PAGE,
-    ) -> RunPage:
-        return self.client.newest_runs(unit, rig, tags, operator, experiment, status, limit)
+    def list_runs(self, query: RunQuery, limit: int | None = DEFAULT_PAGE) -> doc.RunPage:
+        return self.client.newest_runs(query, limit=limit)
 
-    def run_document(self, run_id: str) -> RunDocument:
+    def run_document(self, run_id: str) -> doc.RunDocument:
         return self.client.run(run_id)
 
     def export_run(self, run_id: str, fmt: str, out: str | Path) -> Path:
@@ -148,70 +123,45 @@ class RemoteLab:
 
     # ---- fits and gap analyses ----------------------------------------------------------------------
 
-    def fit(
-        self,
-        data: Sequence[str],
-        model: str,
-        *,
-        out: str | Path,
-        report_dir: str | Path | None,
-        progress: Progress,
-        mapping: Sequence[str] | None = None,
-        joint: bool = True,
-    ) -> FitDocument:
-        if not joint:
+    def fit(self, order: AnalysisOrder, progress: Progress) -> doc.FitDocument:
+        if not order.joint:
             raise UserInputError(
                 "fit --no-joint: the service always refines jointly; run it without --server"
             )
-        job = self._analysis("fits", data, model, progress, mapping)
+        job = self._analysis(doc.JobKind.FIT, order, progress)
         result = dict(job.result or {})
         result["fit_error"] = _nan_for_null(result.get("fit_error") or {}, "before", "after")
-        document = FitDocument.model_validate(result)
-        document.model_file = str(self.client.download_file("fits", job.id, MODEL_FILE, out))
-        if report_dir is not None and document.report is not None:
-            document.report = str(self._report("fits", job.id, report_dir, [document.report])[0])
+        document = doc.FitDocument.model_validate(result)
+        assert order.out is not None, "fit --out is required (rig.cli)"
+        document.model_file = str(self.client.download_file("fits", job.id, MODEL_FILE, order.out))
+        if order.report_dir is not None and document.report is not None:
+            document.report = str(self._report("fits", job.id, order.report_dir, [document.report])[0])
         return document
 
-    def find_gaps(
-        self,
-        data: Sequence[str],
-        model: str,
-        *,
-        out: str | Path | None,
-        report_dir: str | Path | None,
-        progress: Progress,
-        mapping: Sequence[str] | None = None,
-    ) -> GapsDocument:
-        job = self._analysis("gaps", data, model, progress, mapping)
+    def find_gaps(self, order: AnalysisOrder, progress: Progress) -> doc.GapsDocument:
+        job = self._analysis(doc.JobKind.GAPS, order, progress)
         result = _nan_for_null(dict(job.result or {}), "initial_gap", "final_gap")
         result["steps"] = [_nan_for_null(step, "gap_before", "gap_after") for step in result.get("steps", [])]
-        document = GapsDocument.model_validate(result)
-        if out is not None:
-            document.final_model = str(self.client.download_file("gaps", job.id, MODEL_FILE, out))
-        if report_dir is not None:
-            document.report = [str(p) for p in self._report("gaps", job.id, report_dir, document.report)]
+        document = doc.GapsDocument.model_validate(result)
+        if order.out is not None:
+            document.final_model = str(self.client.download_file("gaps", job.id, MODEL_FILE, order.out))
+        if order.report_dir is not None:
+            report = self._report("gaps", job.id, order.report_dir, document.report)
+            document.report = [str(p) for p in report]
         return document
 
-    def _analysis(
-        self,
-        kind: Literal["fits", "gaps"],
-        data: Sequence[str],
-        model: str,
-        progress: Progress,
-        mapping: Sequence[str] | None,
-    ) -> JobDocument:
-        if mapping:
+    def _analysis(self, kind: doc.JobKind, order: AnalysisOrder, progress: Progress) -> doc.JobDocument:
+        if order.mapping:
             raise UserInputError("--map: mapped files are read on this machine only: run it without --server")
-        for ref in data:
+        for ref in order.data:
             _not_a_file(ref, "data")
-        _not_a_file(model, "model")
-        start = self.client.fit if kind == "fits" else self.client.gaps
-        job = start(data, model, wait=False)
+        _not_a_file(order.model, "model")
+        job = self.client.analysis(kind, AnalysisRequest(data=list(order.data), model=order.model))
         while not job.status.finished:
             progress(job.progress.phase, job.progress.fraction)
             time.sleep(POLL_S)
             job = self.client.job(job.id)
-        if job.status != JobStatus.COMPLETE:
+        if job.status != doc.JobStatus.COMPLETE:
             raise _job_error(job)
         return job
 
@@ -251,10 +201,10 @@ def _not_a_file(ref: str, what: str) -> None:
         )
 
 
-def _job_error(job: JobDocument) -> Exception:
+def _job_error(job: doc.JobDocument) -> Exception:
     """What a local run of the job would have raised: a device fault, bad input found late, or a bug."""
     why = job.error or f"job {job.id} ended {job.status}"
-    if job.status == JobStatus.ABORTED and why.startswith("aborted: "):
+    if job.status == doc.JobStatus.ABORTED and why.startswith("aborted: "):
         return DeviceFaultError(why.removeprefix("aborted: "))
     if why.startswith(INTERNAL_ERROR):
         return ServiceError(500, "Internal server error", f"job {job.id}: {why}")

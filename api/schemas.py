@@ -1,49 +1,34 @@
-"""Request and response bodies of the service that are not the core's documents (`rig.core.documents`)."""
+"""Request and response bodies of the service that are not the core's documents (`rig.core.documents`)
+nor the operations' request models (`rig.core.operations`, re-exported here)."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictStr
+from pydantic import BaseModel, ConfigDict, Field, StrictStr
 
 from rig.core.access import Role
 from rig.core.documents import RunDocument
+from rig.core.operations import AnalysisRequest, KeyRequest, ModelUpload, Request, RunRequest
+from rig.store.catalog import DEFAULT_PAGE, MAX_PAGE
+from rig.store.runs import RunQuery
 
 
-class Request(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class RunListQuery(RunQuery):
+    """`GET /api/v1/runs`: the run filters, and which page."""
 
+    model_config = ConfigDict(extra="ignore")  # a query string may carry what is not ours (a cache-buster)
 
-class RunRequest(Request):
-    experiment: StrictStr = Field(
-        max_length=100, description="an experiment name (GET /api/v1/experiments), or `campaign`"
+    limit: int = Field(
+        default=DEFAULT_PAGE,
+        ge=1,
+        le=MAX_PAGE,
+        description=f"runs in the page (the newest before `cursor`), 1-{MAX_PAGE}",
     )
-    params: dict[str, Any] = Field(
-        default_factory=dict,
-        description="the experiment's parameters (defaults for those not given); for `campaign`, an object"
-        " per experiment",
-    )
-    queue: StrictBool = Field(
-        default=False,
-        description="wait for the rig when it is busy, instead of 409 (429 when the queue is full)",
-    )
-    keep_going: StrictBool = Field(default=False, description="campaign: go on after a run aborts")
-    unit: StrictStr | None = Field(
+    cursor: str | None = Field(
         default=None,
-        max_length=100,
-        description="the gear unit's serial number on the bench (default: the rig file's `unit:`)",
-    )
-    tags: list[StrictStr] = Field(
-        default_factory=list, max_length=50, description="free tags put on each run, to search the catalog by"
-    )
-
-
-class AnalysisRequest(Request):
-    data: list[Annotated[StrictStr, Field(max_length=200)]] = Field(
-        min_length=1, max_length=100, description="run ids in the store, or `latest`"
-    )
-    model: StrictStr = Field(
-        min_length=1, max_length=200, description="the starting model: a preset name (GET /api/v1/models)"
+        max_length=1000,
+        description='where the page begins: from the previous page\'s `Link: rel="next"`',
     )
 
 
@@ -84,15 +69,6 @@ class SessionInfo(BaseModel):
     )
 
 
-class KeyRequest(Request):
-    role: Role = Field(
-        description="viewer reads; operator also starts, aborts and stops; admin also manages keys"
-    )
-    name: StrictStr | None = Field(
-        default=None, max_length=100, description="the key's name (default ROLE-N)"
-    )
-
-
 class NewKey(BaseModel):
     name: str
     role: Role
@@ -101,3 +77,19 @@ class NewKey(BaseModel):
 
 class FileList(BaseModel):
     files: list[str] = Field(description="paths relative to the folder, for the files route")
+
+
+__all__ = [
+    "AnalysisRequest",
+    "FileList",
+    "Health",
+    "KeyRequest",
+    "ModelUpload",
+    "NewKey",
+    "RigHealth",
+    "RigStatus",
+    "RunListQuery",
+    "RunRequest",
+    "SessionInfo",
+    "SessionRequest",
+]

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import gc
-import importlib
 import importlib.util
 import json
 import os
@@ -31,7 +30,7 @@ from rig.faults import DeviceFaultError
 from rig.status import RunStatus
 
 if TYPE_CHECKING:
-    from rig.core import actions
+    from rig.core import actions, operations
     from rig.core.documents import RunDocument
     from rig.lab import Lab
 
@@ -54,6 +53,7 @@ def _lazy_module(name: str) -> Any:
 if not TYPE_CHECKING:
     # The core imports every experiment (scipy.signal, matplotlib): ~1 s that `hdrig simulate` never uses.
     actions = _lazy_module("rig.core.actions")
+    operations = _lazy_module("rig.core.operations")
 
 CAMPAIGN = "campaign"
 EXIT_BAD_INPUT = 2
@@ -79,23 +79,19 @@ def _print_json(data: Any) -> int:
 
 # --- where the work is done: here, or on a service (hdrig --server URL) -------------------------------
 
-REMOTE_LAB_MODULE = "api.remote_lab"
 KEY_VARIABLE = "HDRIG_KEY"
 
 
 def _lab(args: argparse.Namespace) -> Lab:
     """The core on this machine, or the service named by --server (`rig.lab`)."""
-    if not args.server:
-        from rig.lab import LocalLab
+    from rig.lab import LocalLab, remote_lab  # the core and its experiments: ~1 s `simulate` never pays
 
+    if not args.server:
         return LocalLab()
     key = args.key or os.environ.get(KEY_VARIABLE)
     if not key:
         raise UserInputError(f"--server {args.server}: needs an API key: --key KEY or ${KEY_VARIABLE}")
-    # The service's package sits above the rig (api imports rig.core): found by name, as in cmd_serve.
-    remote = importlib.import_module(REMOTE_LAB_MODULE)
-    lab: Lab = remote.RemoteLab(args.server, key)
-    return lab
+    return remote_lab(args.server, key)
 
 
 def _here_only(args: argparse.Namespace) -> None:
@@ -237,8 +233,16 @@ def cmd_run(args: argparse.Namespace) -> int:
             if not args.json:
                 bar.write(_summary(run))
 
+        request = operations.asked(
+            operations.RunRequest,
+            experiment=name,
+            params=params,
+            keep_going=args.keep_going,
+            unit=args.unit,
+            tags=args.tag or [],
+        )
         try:
-            lab.run(name, params, args.rig, args.keep_going, bar, landed, unit=args.unit, tags=args.tag)
+            lab.run(request, args.rig, bar, landed)
         except KeyboardInterrupt as stop:  # the lab has stopped the motion and seen the run end
             _say(f"hdrig: interrupted; quick stop; run {runs[-1].id if runs else '-'} kept")
             return _interrupted_status(stop)
@@ -267,17 +271,12 @@ def _page_size(text: str) -> int:
 
 def cmd_runs_list(args: argparse.Namespace) -> int:
     from rig.store.catalog import DEFAULT_PAGE
+    from rig.store.runs import RunQuery, query_of
 
     lab = _lab(args)
-    page = lab.list_runs(
-        unit=args.unit,
-        rig=args.rig,
-        tags=args.tag,
-        operator=args.operator,
-        experiment=args.experiment,
-        status=args.status,
-        limit=None if args.all else args.limit or DEFAULT_PAGE,
-    )
+    filters = {name: getattr(args, name) for name in RunQuery.model_fields if name != "tags"}
+    query = query_of(None, {**filters, "tags": args.tag or []})
+    page = lab.list_runs(query, limit=None if args.all else args.limit or DEFAULT_PAGE)
     runs = page.runs
     if args.json:
         _print_json(runs)
@@ -393,20 +392,13 @@ MAP_HELP = (
 )
 
 
-def _analysis(args: argparse.Namespace, action: Callable[..., Any], **options: Any) -> Any:
+def _analysis(args: argparse.Namespace, action: Callable[..., Any], joint: bool = True) -> Any:
     """Run fit or gaps (a `Lab`'s) with a progress bar; the action's document."""
     from rig.progress import ProgressBar
 
+    order = operations.AnalysisOrder(args.data, args.model, args.out, args.report, args.map, joint)
     with ProgressBar(enabled=not args.quiet) as bar:
-        return action(
-            args.data,
-            args.model,
-            out=args.out,
-            report_dir=args.report,
-            progress=bar,
-            mapping=args.map,
-            **options,
-        )
+        return action(order, bar)
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -529,7 +521,6 @@ def cmd_twin(args: argparse.Namespace) -> int:
     return 0
 
 
-SERVICE_MODULE = "api.app"
 SERVICE_SIGNALS = tuple(getattr(signal, n) for n in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, n))
 SERVICE_EXIT_S = 5.0  # a signal to `hdrig serve` ends the process within this, however many clients follow
 STREAMS_GRACE_S = 3  # [s] uvicorn's wait for open responses; event streams end by themselves well before
@@ -552,8 +543,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         key = access.create_key(store, access.Role.ADMIN, "admin", door="first start of hdrig serve")
         _say(f"hdrig: no API key in {store.home}: made an admin key, shown only this once:\n    {key}")
         _say(f"hdrig: open http://{host}:{args.port}/ and log in with it (or: Authorization: Bearer <key>)")
-    # The service sits above the rig (api imports rig.core): found by name, as the backends are.
-    service = importlib.import_module(SERVICE_MODULE)
+    from rig.lab import served_app
+
+    service = served_app()  # the service sits above the rig: it offers its door to rig.lab
     app = service.create_app(config, store)
     served = uvicorn.Config(
         app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=STREAMS_GRACE_S

@@ -2,19 +2,26 @@
 
 `hdrig` handlers ask a `Lab` for models, experiments, runs, fits and gap analyses and print what it
 answers, so the same handler serves both places: `LocalLab` calls `rig.core` on this machine's store
-and rigs; `hdrig --server URL` gives the handlers `api.remote_lab.RemoteLab`, the same operations over
-HTTP (loaded by module name: the service's package sits above this one). Both answer with the core's
-documents, so `--json` prints the same document either way.
+and rigs; `hdrig --server URL` gives the handlers the service's `RemoteLab`, the same operations over
+HTTP. Both answer with the core's documents, so `--json` prints the same document either way.
+
+The service's package sits above this one (it imports `rig.core`), so the command line does not import
+it: the service offers its doors here instead, as backends offer theirs to `rig.interface` — a
+`ServiceDoor` per name in the entry points of `hdrig.service`, or in `BUILTIN_SERVICE_DOORS` (where
+this package's own service is), loaded only when `hdrig serve` or `--server` asks.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import importlib.metadata
+from collections.abc import Callable
+from importlib.metadata import EntryPoint
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from model.errors import UserInputError
 from model.params import PRESET_DIR
+from rig.config import RigConfig, load_rig_config
 from rig.core import actions
 from rig.core.documents import (
     ExperimentInfo,
@@ -24,21 +31,63 @@ from rig.core.documents import (
     RunDocument,
     RunPage,
 )
+from rig.core.events import EventKind
+from rig.core.operations import AnalysisOrder, RunRequest, plan_of
+from rig.core.worker import RigWorker
 from rig.faults import DeviceFaultError
+from rig.realtime import quiet_heap
 from rig.runner import Progress
 from rig.status import RunStatus
 from rig.store.catalog import DEFAULT_PAGE
+from rig.store.runs import RunQuery, RunStore
 
 if TYPE_CHECKING:
-    from rig.core.worker import Job, RigWorker
+    from rig.core.worker import Job
 
 Landed = Callable[[RunDocument], None]
 """Told each run of a start as it ends, in order."""
 
 
+class ServedApp(Protocol):
+    """What `hdrig serve` needs of the service: an ASGI app for one rig, and how to stop it going away."""
+
+    def create_app(self, config: RigConfig, store: RunStore) -> Any: ...
+
+    def stop_service(self, app: Any, why: str) -> None: ...
+
+
+RemoteLabFactory = Callable[[str, str], "Lab"]
+"""`hdrig --server URL`: a `Lab` over the service at URL with an API key."""
+
+SERVICE_ENTRY_POINTS = "hdrig.service"
+BUILTIN_SERVICE_DOORS = {
+    "serve": "api.app:SERVED_APP",  # a ServedApp
+    "remote-lab": "api.remote_lab:RemoteLab",  # a RemoteLabFactory
+}
+
+
+def service_door(name: str) -> Any:
+    """The service's door `name` (`serve`, `remote-lab`), imported now: an `hdrig.service` entry point's,
+    else this package's own (`BUILTIN_SERVICE_DOORS`)."""
+    found = [ep for ep in importlib.metadata.entry_points(group=SERVICE_ENTRY_POINTS) if ep.name == name]
+    door = found[0] if found else EntryPoint(name, BUILTIN_SERVICE_DOORS[name], SERVICE_ENTRY_POINTS)
+    return door.load()
+
+
+def served_app() -> ServedApp:
+    served: ServedApp = service_door("serve")
+    return served
+
+
+def remote_lab(url: str, key: str) -> Lab:
+    factory: RemoteLabFactory = service_door("remote-lab")
+    return factory(url, key)
+
+
 class Lab(Protocol):
-    """The operations of the command line, wherever they run. Bad input raises `UserInputError` (one
-    line); a device fault before any run ends raises `DeviceFaultError`."""
+    """The operations of the command line, wherever they run (their rows in `rig.core.operations` name
+    these methods). Bad input raises `UserInputError` (one line); a device fault before any run ends
+    raises `DeviceFaultError`."""
 
     store_where: str  # where runs are kept: a store's folder, or a service's URL (told on stderr)
     presets_where: str  # where the model presets come from
@@ -52,64 +101,25 @@ class Lab(Protocol):
     def list_experiments(self) -> list[ExperimentInfo]: ...
 
     def run(
-        self,
-        experiment: str,
-        params: dict[str, Any],
-        rig: str | None,
-        keep_going: bool,
-        progress: Progress,
-        landed: Landed,
-        unit: str | None = None,
-        tags: Sequence[str] = (),
+        self, request: RunRequest, rig: str | None, progress: Progress, landed: Landed
     ) -> list[RunDocument]:
-        """Play an experiment (or the campaign) to its end; each run's document, also told to `landed`
-        as it ends. On KeyboardInterrupt the motion is stopped first, the run lands `aborted` with its
-        data, and KeyboardInterrupt is raised again."""
+        """Play an experiment (or the campaign) to its end on `rig` (a rig file or name); each run's
+        document, also told to `landed` as it ends. On KeyboardInterrupt the motion is stopped first, the
+        run lands `aborted` with its data, and KeyboardInterrupt is raised again."""
         ...
 
-    def list_runs(
-        self,
-        unit: str | None = None,
-        rig: str | None = None,
-        tags: Sequence[str] = (),
-        operator: str | None = None,
-        experiment: str | None = None,
-        status: str | None = None,
-        limit: int | None = DEFAULT_PAGE,
-    ) -> RunPage:
-        """The newest `limit` runs of the catalog (every one when None), oldest first, with how many the
-        filters select in all: a unit, rig, operator or experiment (exact or a glob), a status, all
-        `tags`."""
+    def list_runs(self, query: RunQuery, limit: int | None = DEFAULT_PAGE) -> RunPage:
+        """The newest `limit` runs `query` selects (every one when None), oldest first, with how many it
+        selects in all."""
         ...
 
     def run_document(self, run_id: str) -> RunDocument: ...
 
     def export_run(self, run_id: str, fmt: str, out: str | Path) -> Path: ...
 
-    def fit(
-        self,
-        data: Sequence[str],
-        model: str,
-        *,
-        out: str | Path,
-        report_dir: str | Path | None,
-        progress: Progress,
-        mapping: Sequence[str] | None = None,
-        joint: bool = True,
-    ) -> FitDocument:
-        """`mapping`: `--map` entries for files with other column names (`rig.store.importmap`)."""
-        ...
+    def fit(self, order: AnalysisOrder, progress: Progress) -> FitDocument: ...
 
-    def find_gaps(
-        self,
-        data: Sequence[str],
-        model: str,
-        *,
-        out: str | Path | None,
-        report_dir: str | Path | None,
-        progress: Progress,
-        mapping: Sequence[str] | None = None,
-    ) -> GapsDocument: ...
+    def find_gaps(self, order: AnalysisOrder, progress: Progress) -> GapsDocument: ...
 
 
 class LocalLab:
@@ -118,8 +128,6 @@ class LocalLab:
     presets_where = str(PRESET_DIR)
 
     def __init__(self) -> None:
-        from rig.store.runs import RunStore
-
         self.store = RunStore()
         self.store_where = str(self.store.home)
 
@@ -133,26 +141,14 @@ class LocalLab:
         return actions.list_experiments()
 
     def run(
-        self,
-        experiment: str,
-        params: dict[str, Any],
-        rig: str | None,
-        keep_going: bool,
-        progress: Progress,
-        landed: Landed,
-        unit: str | None = None,
-        tags: Sequence[str] = (),
+        self, request: RunRequest, rig: str | None, progress: Progress, landed: Landed
     ) -> list[RunDocument]:
-        from rig.config import load_rig_config
-        from rig.core.worker import RigWorker
-        from rig.realtime import quiet_heap
-
         if rig is None:
             raise UserInputError(
-                f"run {experiment}: --rig RIG is required (a rig file, or a name in configs/rigs)"
+                f"run {request.experiment}: --rig RIG is required (a rig file, or a name in configs/rigs)"
             )
         config = load_rig_config(rig)
-        plan = actions.plan_run(experiment, params, keep_going=keep_going, unit=unit, tags=tags)
+        plan = plan_of(request)
         runs: list[RunDocument] = []
 
         def land(run: RunDocument) -> None:
@@ -163,9 +159,7 @@ class LocalLab:
         # the rig is opened and its drive's heartbeat watchdog is armed.
         with quiet_heap(), RigWorker(config, self.store) as worker:
             # The whole plan against the open rig (its saturation, travel), still before anything moves.
-            plan = actions.plan_run(
-                experiment, params, keep_going=keep_going, unit=unit, tags=tags, rig=worker.rig
-            )
+            plan = plan_of(request, worker.rig)
             job = worker.submit(plan)
             follower = _Follower(worker, job, progress, land)
             try:
@@ -179,19 +173,8 @@ class LocalLab:
             raise job.exception  # bad input found late, a fault before any run, or a bug (its traceback)
         return runs
 
-    def list_runs(
-        self,
-        unit: str | None = None,
-        rig: str | None = None,
-        tags: Sequence[str] = (),
-        operator: str | None = None,
-        experiment: str | None = None,
-        status: str | None = None,
-        limit: int | None = DEFAULT_PAGE,
-    ) -> RunPage:
-        return actions.list_runs(
-            self.store, unit, rig, tags, operator, experiment=experiment, status=status, limit=limit
-        )
+    def list_runs(self, query: RunQuery, limit: int | None = DEFAULT_PAGE) -> RunPage:
+        return actions.list_runs(self.store, query, limit=limit)
 
     def run_document(self, run_id: str) -> RunDocument:
         return actions.run_document(self.store, run_id)
@@ -199,41 +182,19 @@ class LocalLab:
     def export_run(self, run_id: str, fmt: str, out: str | Path) -> Path:
         return actions.export_run(self.store, run_id, fmt, out)
 
-    def fit(
-        self,
-        data: Sequence[str],
-        model: str,
-        *,
-        out: str | Path,
-        report_dir: str | Path | None,
-        progress: Progress,
-        mapping: Sequence[str] | None = None,
-        joint: bool = True,
-    ) -> FitDocument:
-        return actions.fit(
-            data,
-            model,
-            self.store,
-            out=out,
-            report_dir=report_dir,
-            joint=joint,
-            progress=progress,
-            mapping=mapping,
-        )
+    def fit(self, order: AnalysisOrder, progress: Progress) -> FitDocument:
+        document: FitDocument = self._analyze(actions.fit, order, progress, joint=order.joint)
+        return document
 
-    def find_gaps(
-        self,
-        data: Sequence[str],
-        model: str,
-        *,
-        out: str | Path | None,
-        report_dir: str | Path | None,
-        progress: Progress,
-        mapping: Sequence[str] | None = None,
-    ) -> GapsDocument:
-        return actions.find_gaps(
-            data, model, self.store, out=out, report_dir=report_dir, progress=progress, mapping=mapping
-        )
+    def find_gaps(self, order: AnalysisOrder, progress: Progress) -> GapsDocument:
+        document: GapsDocument = self._analyze(actions.find_gaps, order, progress)
+        return document
+
+    def _analyze(
+        self, action: Callable[..., Any], order: AnalysisOrder, progress: Progress, **more: Any
+    ) -> Any:
+        where = {"out": order.out, "report_dir": order.report_dir, "mapping": order.mapping}
+        return action(order.data, order.model, self.store, progress=progress, **where, **more)
 
 
 class _Follower:
@@ -245,8 +206,6 @@ class _Follower:
         self.seen = 0
 
     def until_done(self) -> None:
-        from rig.core.events import EventKind
-
         while True:
             done = (
                 self.job.done.is_set()

@@ -25,7 +25,7 @@ import yaml
 from pydantic import ValidationError
 
 from model.errors import UserInputError, describe_validation_error
-from model.params import load_model, preset_names
+from model.params import load_model, parse_model, preset_names
 from model.run import Run
 from rig.config import RigConfig
 from rig.core.documents import (
@@ -35,6 +35,9 @@ from rig.core.documents import (
     FitParameter,
     GapsDocument,
     GapStepDocument,
+    JobDocument,
+    JobKind,
+    JobStatus,
     ModelSummary,
     PlannedRun,
     RunDocument,
@@ -54,10 +57,13 @@ from rig.store.runfile import json_text
 from rig.store.runs import (
     ARTIFACTS_DIR,
     AnalysisState,
+    RunQuery,
     RunStore,
+    UnknownColumnError,
     check_tags,
     load_runs,
     new_run_id,
+    query_of,
     run_filter,
 )
 
@@ -70,6 +76,7 @@ logger = logging.getLogger(__name__)
 ANALYSES_DIR = "analyses"
 RESULT_FILE = "result.json"
 MODEL_FILE = "model.yaml"
+JOB_FILE = "job.json"  # an analysis' job record: id, kind, created
 
 
 # ---- models and experiments ---------------------------------------------------------------------
@@ -95,6 +102,44 @@ def list_experiments() -> list[ExperimentInfo]:
         ExperimentInfo(name=e.name, summary=e.summary, params_schema=e.Params.model_json_schema())
         for e in EXPERIMENTS.values()
     ]
+
+
+def kept_model(store: RunStore, name: str) -> str | None:
+    """What the core loads for a model named over HTTP: a preset's name, or the file the store keeps for
+    an uploaded one; None for anything else (no file of the server is named over HTTP)."""
+    if name in preset_names():
+        return name
+    path = store.model_file(name)
+    return str(path) if path is not None else None
+
+
+def list_kept_models(store: RunStore) -> list[ModelSummary]:
+    """The presets, then the models uploaded into the store (`GET /api/v1/models`)."""
+    out = list_models()
+    for name in store.model_names():
+        path = store.model_file(name)
+        if name in preset_names() or path is None:
+            continue
+        model = load_model(str(path))
+        out.append(ModelSummary(name=name, effects=list(model.effects), description=model.description))
+    return out
+
+
+def keep_model(store: RunStore, name: str, content: dict[str, Any], where: str) -> dict[str, Any]:
+    """Keep a model file's `content` in the store under `name` (`POST /api/v1/models`); the model as kept.
+    A name in use is a NameTakenError; a bad model a FieldInputError naming `model` (`where` is how the
+    message names the content)."""
+    if kept_model(store, name) is not None:
+        raise NameTakenError(f"model name {name!r} is taken (GET /api/v1/models lists them)")
+    try:
+        parsed = parse_model(content, where)
+    except UserInputError as exc:
+        raise FieldInputError("model", str(exc)[:500]) from None
+    try:
+        store.keep_model(name, yaml.safe_dump(parsed.to_dict(), sort_keys=False))
+    except UserInputError as exc:  # taken meanwhile by another upload
+        raise NameTakenError(str(exc)) from None
+    return parsed.to_dict()
 
 
 # ---- planning and running -----------------------------------------------------------------------
@@ -336,21 +381,16 @@ def _document(store: RunStore, entry: dict[str, Any], with_artifacts: bool) -> R
 
 def list_runs(
     store: RunStore,
-    unit: str | None = None,
-    rig: str | None = None,
-    tags: Sequence[str] = (),
-    operator: str | None = None,
-    experiment: str | None = None,
-    status: str | None = None,
+    query: RunQuery | None = None,
     limit: int | None = DEFAULT_PAGE,
     cursor: str | None = None,
+    **filters: Any,
 ) -> RunPage:
     """A page of the catalog: the newest `limit` runs (every one when None) before `cursor` (a page's
-    `next_cursor`; from the newest when None), oldest first, with the count of all the filters select.
-    Filters: `unit`, `rig`, `operator`, `experiment` (exact, or a glob such as `HD25-*`), `status`, and
-    all of `tags`. A page is read from the catalog's summary columns (no metadata: `run_document` has it;
-    no artifacts: `show_run` lists them)."""
-    where = run_filter(unit=unit, rig=rig, tags=tags, operator=operator, experiment=experiment, status=status)
+    `next_cursor`; from the newest when None) that `query` selects (or its fields given by name), oldest
+    first, with the count of all it selects. A page is read from the catalog's summary columns (no
+    metadata: `run_document` has it; no artifacts: `show_run` lists them)."""
+    where = run_filter(query_of(query, filters))
     page = page_of_runs(store.catalog, where, limit, Cursor.decode(cursor) if cursor else None)
     documents = []
     for row in page.rows:
@@ -393,14 +433,84 @@ def export_run(store: RunStore, run_id: str, fmt: str, out: str | Path) -> Path:
     return store.export(run_id, fmt, out)
 
 
+class UnknownJobError(UserInputError):
+    """No job with this id (HTTP 404)."""
+
+
+class NameTakenError(UserInputError):
+    """A name already in use (HTTP 409)."""
+
+
+class FieldInputError(UserInputError):
+    """Bad input that names the request's field it came from (`columns`, `t1`), for the service's 422."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+def download_run(
+    store: RunStore,
+    run_id: str,
+    fmt: str,
+    folder: Path,
+    columns: Sequence[str] | None = None,
+    t0: float | None = None,
+    t1: float | None = None,
+) -> Path:
+    """Write some columns (`t` always) of a run's samples with t0 ≤ t ≤ t1 [s] as `folder/<id>.<fmt>`, a
+    selection not checked as a run (`GET /api/v1/runs/{id}/data`); streamed from the row groups that hold
+    them. An unknown column or t1 before t0 is a FieldInputError naming `columns` or `t1`."""
+    if t0 is not None and t1 is not None and t1 < t0:
+        raise FieldInputError("t1", f"t1={t1} is before t0={t0}")
+    store.get(run_id)  # an unknown id is told as such; a run whose writer died is sealed first
+    try:
+        return store.export(run_id, fmt, folder, list(columns) if columns else None, t0, t1)
+    except UnknownColumnError as exc:
+        raise FieldInputError("columns", f"columns: {exc}") from None
+
+
 # ---- identification and the gap workflow --------------------------------------------------------
 
 
-def _analysis_folder(store: RunStore, kind: str, analysis_id: str | None) -> Path:
-    name = analysis_id or f"{datetime.now(UTC):%Y%m%d-%H%M%S}-{kind}-{new_run_id(kind)[-4:]}"
-    folder = store.home / ANALYSES_DIR / name
+def _analysis_folder(store: RunStore, kind: JobKind, analysis_id: str | None) -> Path:
+    """A new analysis' folder, with its job record (`job.json`: its id, kind and when it began), so the
+    kind of a finished analysis is read, not guessed from its id."""
+    now = datetime.now(UTC)
+    name = analysis_id or f"{now:%Y%m%d-%H%M%S}-{kind}-{new_run_id(kind)[-4:]}"
+    folder = analysis_folder(store, name)
     folder.mkdir(parents=True, exist_ok=True)
+    record = {"id": name, "kind": str(kind), "created": now.isoformat()}
+    (folder / JOB_FILE).write_text(json.dumps(record, indent=2) + "\n")
     return folder
+
+
+def analysis_folder(store: RunStore, job_id: str) -> Path:
+    """Where the analysis `job_id` keeps its files (the folder need not exist)."""
+    if not job_id or Path(job_id).name != job_id or job_id in (".", ".."):
+        raise UnknownJobError(f"unknown job id {job_id[:80]!r}")
+    return store.home / ANALYSES_DIR / job_id
+
+
+def finished_analysis(store: RunStore, job_id: str, kind: JobKind) -> JobDocument | None:
+    """The document of an analysis of this `kind` that ended before this process began (from its folder's
+    job record and result), or None."""
+    folder = analysis_folder(store, job_id)
+    record, result = folder / JOB_FILE, folder / RESULT_FILE
+    if not (record.is_file() and result.is_file()):
+        return None
+    job = json.loads(record.read_text())
+    if job.get("kind") != kind:
+        return None
+    ended = datetime.fromtimestamp(result.stat().st_mtime, UTC)
+    return JobDocument(
+        id=job_id,
+        kind=kind,
+        status=JobStatus.COMPLETE,
+        created=datetime.fromisoformat(job["created"]),
+        ended=ended,
+        result=json.loads(result.read_text()),
+    )
 
 
 def _runs_for(data: Sequence[str], store: RunStore, mapping: Sequence[str] | None = None) -> list[Run]:
@@ -451,7 +561,7 @@ def fit(
     start = load_model(model)
     _check_out(out)
     runs = _complete_only(_runs_for(data, store, mapping), store, "fit")
-    folder = _analysis_folder(store, "fit", analysis_id)
+    folder = _analysis_folder(store, JobKind.FIT, analysis_id)
     report = Path(report_dir) if report_dir is not None else None
     result = identify(runs, start, joint=joint, report_dir=report, progress=progress)
     save_identified(result, Path(out) if out is not None else folder / MODEL_FILE)
@@ -476,7 +586,7 @@ def find_gaps(
 
     start = load_model(model)
     runs = _runs_for(data, store, mapping)
-    folder = _analysis_folder(store, "gaps", analysis_id)
+    folder = _analysis_folder(store, JobKind.GAPS, analysis_id)
     _check_out(out)
     model_out = Path(out) if out is not None else folder / MODEL_FILE
     result = workflow(runs, start, report_dir=report_dir, progress=progress, model_out=model_out)

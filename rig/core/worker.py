@@ -26,14 +26,14 @@ import numpy as np
 
 from model.errors import UserInputError
 from rig.config import RigConfig
-from rig.core.actions import execute_plan, reserve_run_id
-from rig.core.documents import JobDocument, JobKind, JobStatus, Progress, RunDocument, RunPlan
+from rig.core.actions import UnknownJobError, execute_plan, list_runs, reserve_run_id, run_document
+from rig.core.documents import JobDocument, JobKind, JobStatus, Progress, RunDocument, RunPage, RunPlan
 from rig.core.events import Event, EventKind, EventLog
 from rig.faults import DeviceFaultError
 from rig.interface import Block, ControlMode, Rig, Segment, open_rig
 from rig.runner import RunHooks
 from rig.status import RunStatus
-from rig.store.runs import RunStore, new_run_id
+from rig.store.runs import RunQuery, RunStore, new_run_id
 
 log = logging.getLogger(__name__)
 
@@ -66,10 +66,6 @@ class IllegalTransitionError(RuntimeError):
 
 class RigBusyError(UserInputError):
     """The rig is playing a job and the request did not ask to queue (HTTP 409)."""
-
-
-class UnknownJobError(UserInputError):
-    """No job with this id (HTTP 404)."""
 
 
 class WorkerClosedError(UserInputError):
@@ -454,6 +450,46 @@ class RigWorker(_JobThread):
                         )
                     return document.model_copy(update={"progress": min(1.0, job.fraction)})
         return None
+
+    def owner_of(self, run_id: str) -> str | None:
+        return next((job.owner for job in self.jobs() if run_id in job.runs), None)
+
+    def run_document(self, run_id: str) -> RunDocument:
+        """A run: queued or recording from this worker, else from the store (UnknownRunError when unknown)."""
+        live = self.live_run(run_id)
+        if live is not None:
+            if live.status == RunStatus.RUNNING:  # the worker knows the progress, the store what is on disk
+                live.samples = self.store.get(run_id)["samples"]
+            return live
+        document = run_document(self.store, run_id)
+        document.owner = self.owner_of(run_id)
+        return document
+
+    def runs_page(self, query: RunQuery, limit: int | None = None, cursor: str | None = None) -> RunPage:
+        """A page of the catalog (`actions.list_runs`) with what this worker knows that the catalog does
+        not: each recording run's progress, each run's owner, and, on the first page of a listing not
+        narrowed by a field a queued run lacks, the runs waiting for the rig (they have no catalog entry
+        to search or page through yet: the newest runs). `total` counts those too."""
+        page = list_runs(self.store, query, limit=limit, cursor=cursor)
+        owners = {run_id: job.owner for job in self.jobs() for run_id in job.runs}
+        listed: dict[str, RunDocument] = {}
+        for document in page.runs:
+            live = self.live_run(document.id) if document.status == RunStatus.RUNNING else None
+            if live is not None:
+                live.samples = document.samples
+            listed[document.id] = live or document
+            listed[document.id].owner = owners.get(document.id)
+        waiting: list[RunDocument] = []
+        if not query.searched and query.status in (None, RunStatus.QUEUED):
+            for job in self.jobs():
+                if job.status == JobStatus.QUEUED:
+                    found = (self.live_run(run_id) for run_id in job.runs if run_id not in listed)
+                    waiting += [run for run in found if run is not None]
+        if cursor is None:
+            listed.update((run.id, run) for run in waiting)
+        return RunPage(
+            runs=list(listed.values()), total=page.total + len(waiting), next_cursor=page.next_cursor
+        )
 
     # ---- the job thread's side ------------------------------------------------------------------
 

@@ -52,8 +52,9 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import sqlalchemy as sa
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from model.errors import UserInputError
+from model.errors import UserInputError, describe_validation_error
 from model.run import Run, RunFormatError
 from rig.faults import StorageFaultError
 from rig.status import RunStatus
@@ -147,30 +148,68 @@ def _match(column: Any, pattern: str) -> Any:
     return column.like(escaped.replace("*", "%").replace("?", "_"), escape="\\")
 
 
-def run_filter(
-    unit: str | None = None,
-    rig: str | None = None,
-    tags: Sequence[str] = (),
-    operator: str | None = None,
-    experiment: str | None = None,
-    status: str | None = None,
-) -> list[Any]:
-    """The catalog conditions selecting runs by these fields (each exact or a glob; all tags required)."""
+class RunQuery(BaseModel):
+    """Which runs of the catalog: the one declaration of the run filters, for the store, the core, the
+    command line (`hdrig runs list --unit ...`), the service (`GET /api/v1/runs?unit=...`) and its client.
+    Each text field matches exactly or as a glob (`HD25-*`); a run must carry every one of `tags`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    unit: str | None = Field(
+        default=None, max_length=100, description="gear unit serial, exact or a glob (HD25-*)"
+    )
+    rig: str | None = Field(default=None, max_length=100, description="rig name, exact or a glob")
+    tags: list[str] = Field(
+        default_factory=list,
+        alias="tag",
+        max_length=100,
+        description="a tag every run listed carries (repeated: every one of them)",
+    )
+    operator: str | None = Field(default=None, max_length=100, description="who started it, exact or a glob")
+    experiment: str | None = Field(
+        default=None, max_length=100, description="the experiment, exact or a glob"
+    )
+    status: RunStatus | None = Field(
+        default=None, description="only runs with this status (`queued`: those waiting for the rig)"
+    )
+
+    @property
+    def searched(self) -> bool:
+        """Some field other than the status narrows the runs (queued runs have none of them yet)."""
+        return bool(self.tags) or any(
+            v is not None for v in (self.unit, self.rig, self.operator, self.experiment)
+        )
+
+
+def run_filter(query: RunQuery) -> list[Any]:
+    """The catalog conditions selecting the runs `query` asks for."""
     runs, run_tags = tables.runs, tables.run_tags
     where = [
         _match(column, value)
         for column, value in (
-            (runs.c.unit, unit),
-            (runs.c.rig, rig),
-            (runs.c.operator, operator),
-            (runs.c.experiment, experiment),
-            (runs.c.status, status),
+            (runs.c.unit, query.unit),
+            (runs.c.rig, query.rig),
+            (runs.c.operator, query.operator),
+            (runs.c.experiment, query.experiment),
+            (runs.c.status, query.status),
         )
         if value is not None
     ]
-    for tag in tags:
+    for tag in query.tags:
         where.append(runs.c.id.in_(sa.select(run_tags.c.run_id).where(_match(run_tags.c.tag, tag))))
     return where
+
+
+def query_of(query: RunQuery | None, filters: dict[str, Any]) -> RunQuery:
+    """`query`, or a query of the `filters` given by name (`unit="HD25-*"`, `tags=[...]`)."""
+    if query is not None and filters:
+        raise TypeError(f"a RunQuery or its fields by name, not both: {sorted(filters)}")
+    if query is not None:
+        return query
+    try:
+        return RunQuery(**filters)
+    except ValidationError as exc:
+        raise UserInputError(describe_validation_error(exc)) from None
 
 
 def _process_start(pid: int) -> tuple[str, str] | None:
@@ -600,21 +639,11 @@ class RunStore:
         return found
 
     def list_runs(
-        self,
-        unit: str | None = None,
-        rig: str | None = None,
-        tags: Sequence[str] = (),
-        operator: str | None = None,
-        experiment: str | None = None,
-        status: str | None = None,
-        limit: int | None = None,
+        self, query: RunQuery | None = None, limit: int | None = None, **filters: Any
     ) -> list[dict[str, Any]]:
-        """The runs, oldest first, each a dict of its catalog fields (metrics and meta decoded, `tags` a
-        list). Filters: `unit`, `rig`, `operator` and `experiment` match exactly or as a glob (`HD25-*`);
-        every one of `tags` (exact or glob) must be on the run; `limit`: only the newest so many."""
-        where = run_filter(
-            unit=unit, rig=rig, tags=tags, operator=operator, experiment=experiment, status=status
-        )
+        """The runs `query` (or the same fields given as `filters`) selects, oldest first, each a dict of
+        its catalog fields (metrics and meta decoded, `tags` a list); `limit`: only the newest so many."""
+        where = run_filter(query_of(query, filters))
         rows = self._select(where, limit)
         if self._reconcile(rows):
             rows = self._select(where, limit)
