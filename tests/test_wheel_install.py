@@ -100,9 +100,9 @@ def test_wheel_holds_the_data_files(wheel: Path) -> None:
         in_tree = {f"configs/{kind}/{p.name}" for p in (ROOT / "configs" / kind).iterdir() if p.is_file()}
         assert in_tree and in_tree <= names, in_tree - names
     assert "configs/__init__.py" in names
-    static = {f"api/{p.relative_to(ROOT / 'api').as_posix()}" for p in (ROOT / "api/static").rglob("*")}
-    assert {p for p in static if "." in p.rsplit("/", 1)[-1]} <= names
-    assert "api/static/index.html" in names
+    page = ROOT / "api" / "static"
+    static = {f"api/static/{p.relative_to(page).as_posix()}" for p in page.rglob("*") if p.is_file()}
+    assert "api/static/index.html" in static and static <= names, static - names
     migrations = {p.name for p in (ROOT / "rig/store/catalog_migrations/versions").glob("r*.py")}
     assert migrations and {f"rig/store/catalog_migrations/versions/{m}" for m in migrations} <= names
     assert "rig/store/catalog_migrations/env.py" in names
