@@ -7,6 +7,7 @@ moving when the test acts on it, the rig is paced to the wall clock; every wait 
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -18,7 +19,8 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app, iter_routes
 from rig.config import RigConfig, load_rig_config
-from rig.core import access
+from rig.core import access, actions
+from rig.core.documents import JobKind
 from rig.store.runs import RunStore
 
 API = "/api/v1"
@@ -387,3 +389,21 @@ def test_a_fit_over_http_on_runs_recorded_over_http_returns_the_fit_document(ser
     assert "result.json" in files and any(f.startswith("report/") for f in files)
     assert service.get(f"{location}/files/result.json").json() == result
     assert_problem(service.get(f"{location}/files/../../catalog.sqlite"), 404)
+
+
+def test_an_analysis_from_before_the_service_is_found_by_its_recorded_kind_not_its_id(
+    service: Service,
+) -> None:
+    """A fit or gap analysis that ended before this service started answers from its folder's job record;
+    its id says nothing (this gap analysis is named like a fit)."""
+    store = service.store
+    folder = actions._analysis_folder(store, JobKind.GAPS, "20260101-000000-fit-abcd")
+    (folder / actions.RESULT_FILE).write_text(json.dumps({"verdict": "no gap"}))
+    job = service.get(f"{API}/gaps/{folder.name}")
+    assert job.status_code == 200, job.text
+    assert job.json()["kind"] == "gaps" and job.json()["status"] == "complete"
+    assert job.json()["result"] == {"verdict": "no gap"}
+    assert "job.json" in service.get(f"{API}/gaps/{folder.name}/files").json()["files"]
+    assert_problem(service.get(f"{API}/fits/{folder.name}"), 404)
+    (folder / actions.JOB_FILE).unlink()  # no record: not an analysis this store knows
+    assert_problem(service.get(f"{API}/gaps/{folder.name}"), 404)

@@ -6,19 +6,25 @@ from __future__ import annotations
 
 import argparse
 import inspect
+from pathlib import Path
 from typing import Any
 
+import pytest
 from fastapi.routing import APIRoute
 
 from api import auth
 from api.app import API, _operator_now, router
 from api.client import HdrigClient
 from api.remote_lab import RemoteLab
+from model.errors import UserInputError
 from rig.cli import build_parser
+from rig.core import actions
 from rig.core.access import Role
+from rig.core.actions import UnknownJobError
+from rig.core.documents import JobKind
 from rig.core.operations import OPERATIONS, Operation
 from rig.lab import Lab, LocalLab
-from rig.store.runs import RunQuery
+from rig.store.runs import RunQuery, RunStore
 
 SERVICE_ONLY = {("GET", f"{API}/health"), ("POST", f"{API}/session"), ("GET", f"{API}/session")}
 SERVICE_ONLY |= {("DELETE", f"{API}/session")}  # the page's login and liveness: no operation of the lab
@@ -130,3 +136,20 @@ def test_the_run_filters_are_one_query_everywhere() -> None:
     model = query.field_info.annotation
     assert isinstance(model, type) and issubclass(model, RunQuery)
     assert set(model.model_fields) - set(RunQuery.model_fields) == {"limit", "cursor"}  # which page
+
+
+def test_an_analysis_folder_is_named_by_a_job_id_only(tmp_path: Path) -> None:
+    store = RunStore(tmp_path / "home")
+    for bad in ("..", ".", "", "a/b"):
+        with pytest.raises(UnknownJobError, match=r"^unknown job id"):
+            actions.analysis_folder(store, bad)
+    assert actions.finished_analysis(store, "20260101-000000-fit-abcd", JobKind.FIT) is None
+
+
+def test_a_download_names_the_field_it_refuses(tmp_path: Path) -> None:
+    store = RunStore(tmp_path / "home")
+    with pytest.raises(actions.FieldInputError, match=r"^t1=1\.0 is before t0=2\.0$") as late:
+        actions.download_run(store, "no-such-run", "csv", tmp_path, None, 2.0, 1.0)
+    assert late.value.field == "t1"
+    with pytest.raises(UserInputError, match="no-such-run"):  # the run is looked up before its columns
+        actions.download_run(store, "no-such-run", "csv", tmp_path, ["omega_m"])
