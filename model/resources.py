@@ -9,7 +9,6 @@ ours, so every package may use it (`drivers` as it uses `model.errors`).
 from __future__ import annotations
 
 import importlib.resources
-from importlib.resources.abc import Traversable
 from pathlib import Path
 
 
@@ -21,25 +20,13 @@ def package_folder(package: str, *parts: str) -> Path:
     as files, so an installed package's folder is a real directory.
     """
     root = importlib.resources.files(package)
-    return _as_path(root, package).joinpath(*parts)
-
-
-def card_folder(name: str) -> Path:
-    """The card's `configs/<name>` folder (`models`, `rigs` or `eds`), wherever hdrig is installed."""
-    try:
-        root: Traversable = importlib.resources.files("configs")
-    except ModuleNotFoundError:
-        # An editable install made before configs/ became a package maps only the packages it knew then;
-        # until it is renewed (`make install`), the checkout's folder beside this package stands in.
-        root = Path(__file__).resolve().parent.parent / "configs"
-        if not root.is_dir():
-            raise
-    return _as_path(root, "configs") / name
-
-
-def _as_path(root: Traversable, package: str) -> Path:
     if not isinstance(root, Path):
         raise RuntimeError(
             f"{package}: installed as {root!r}, not as files; reinstall hdrig with pip or pipx"
         )
-    return root
+    return root.joinpath(*parts)
+
+
+def card_folder(name: str) -> Path:
+    """The card's `configs/<name>` folder (`models`, `rigs` or `eds`), wherever hdrig is installed."""
+    return package_folder("configs", name)
