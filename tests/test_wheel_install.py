@@ -10,6 +10,7 @@ Every command runs from a folder outside the checkout.
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
 import shutil
 import socket
@@ -42,6 +43,10 @@ def _pip(python: str | Path, command: str) -> list[str]:
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The checkout's wheel, built from a copy (a build writes build/ and *.egg-info beside the sources)."""
+    backend = importlib.metadata.version("setuptools")
+    assert tuple(int(p) for p in backend.split(".")[:2]) >= (70, 1), (
+        f"setuptools {backend}: the dev extra's setuptools>=70.1 builds the wheel (make install)"
+    )
     work = tmp_path_factory.mktemp("wheel")
     sources = work / "src"
     shutil.copytree(ROOT, sources, ignore=NOT_SOURCES)
