@@ -53,16 +53,26 @@ def timed(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, flo
 
 
 def bench_simulate(work: Path) -> None:
-    from model import kernel as k
     from model.params import load_model
     from model.plant import kernel_vectors
+    from model.registry import FL, slot_defines
 
     p, flags = kernel_vectors(load_model("seed"))
     params = work / "seed_params.bin"
     p.tofile(params)
     loop = work / "seed_loop"
     subprocess.run(
-        ["gcc", "-O2", "-march=native", "-o", str(loop), str(REPO / "bench/seed_loop.c"), "-lm"], check=True
+        [
+            "gcc",
+            "-O2",
+            "-march=native",
+            *slot_defines(),
+            "-o",
+            str(loop),
+            str(REPO / "bench/seed_loop.c"),
+            "-lm",
+        ],
+        check=True,
     )
     print("\n## hdrig simulate vs a plain C loop (seed, sine 2 V 0.5 Hz, dt 1e-4 s, 10 Hz output)\n")
     print(
@@ -100,7 +110,7 @@ def bench_simulate(work: Path) -> None:
                     [
                         str(loop),
                         str(params),
-                        str(int(flags[k.FL_HARMONICS])),
+                        str(int(flags[FL.HARMONICS])),
                         "2",
                         "0.5",
                         "1e-4",

@@ -29,7 +29,8 @@ Prints tables, asserts nothing. What it measures:
    wall time only. The rows of both are compared, so both integrate the same model.
 
 Sections 1-4 are pinned to one CPU: the kernel is a single-threaded loop (no prange), so its rate
-is a one-core figure, and solve_ivp gets the same core. `--whole-process-only` runs section 5 alone.
+is a one-core figure, and solve_ivp gets the same core. `--whole-process-only` runs section 5 alone,
+`--rate-only` section 1 alone.
 """
 
 from __future__ import annotations
@@ -53,9 +54,9 @@ import scipy
 from numpy.typing import NDArray
 from scipy.integrate import solve_ivp
 
-from model import kernel
 from model.params import HarmonicDriveModel, load_model
 from model.plant import Plant
+from model.registry import FL, OUT, slot_defines
 
 REPO = Path(__file__).resolve().parent.parent
 PRESET = "seed"
@@ -109,7 +110,7 @@ def run_kernel(model: HarmonicDriveModel, dt_s: float, duration_s: float) -> tup
     start = time.perf_counter()
     rows = plant.advance(drive, "voltage", 0.0, dt_s, decim=round(SAMPLE_S / dt_s))
     wall_s = time.perf_counter() - start
-    return rows[:, [kernel.OUT_THETA_M, kernel.OUT_THETA_L]].copy(), wall_s
+    return rows[:, [OUT.THETA_M, OUT.THETA_L]].copy(), wall_s
 
 
 def best_kernel_wall(model: HarmonicDriveModel, dt_s: float, duration_s: float, repeats: int) -> float:
@@ -596,7 +597,16 @@ def bench_whole_process(model: HarmonicDriveModel) -> None:
         p.tofile(params)
         loop = work / "seed_loop"
         subprocess.run(
-            ["gcc", "-O2", "-march=native", "-o", str(loop), str(REPO / "bench/seed_loop.c"), "-lm"],
+            [
+                "gcc",
+                "-O2",
+                "-march=native",
+                *slot_defines(),
+                "-o",
+                str(loop),
+                str(REPO / "bench/seed_loop.c"),
+                "-lm",
+            ],
             check=True,
         )
         print(
@@ -611,7 +621,7 @@ def bench_whole_process(model: HarmonicDriveModel) -> None:
             ours_cmd += ["--input", f"sine:amp={U_AMP_V:g},freq={U_FREQ_HZ:g}", "--dt", f"{DT_S:.0e}"]
             ours_cmd += ["--rate", f"{WHOLE_RATE_HZ:g}", "--duration", f"{duration_s:g}", "--out", str(out)]
             c_out = work / "c.bin"
-            c_cmd = [str(loop), str(params), str(int(flags[kernel.FL_HARMONICS])), f"{U_AMP_V:g}"]
+            c_cmd = [str(loop), str(params), str(int(flags[FL.HARMONICS])), f"{U_AMP_V:g}"]
             c_cmd += [f"{U_FREQ_HZ:g}", f"{DT_S:g}", str(steps), str(decim), str(c_out)]
             ours: list[ProcessCost] = []
             theirs: list[ProcessCost] = []
@@ -644,6 +654,11 @@ def load_average() -> str:
 def main() -> None:
     model = load_model(PRESET)
     started = time.perf_counter()
+    if "--rate-only" in sys.argv:
+        pin_to_one_cpu()
+        print_header(model)
+        bench_kernel_rate(model)
+        return
     if "--whole-process-only" not in sys.argv:
         pin_to_one_cpu()
         print_header(model)

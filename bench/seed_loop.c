@@ -7,17 +7,18 @@
  * written to the output file, as the Python process writes its run file.
  *
  * Usage: seed_loop PARAMS.bin N_HARMONICS AMP_V FREQ_HZ DT_S STEPS DECIM OUT.bin
- * PARAMS.bin holds model.kernel's float parameter vector (float64, indexed as in model/kernel.py), so
+ * PARAMS.bin holds model.kernel's float parameter vector (float64, indexed as model.registry.P says), so
  * both loops read the same numbers. Built by the bench with gcc -O2 -march=native -lm.
  */
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 
-enum { J_M, J_L, R_GEAR, K_M, K_B, R_ARM, K_S, D_S, S1, S2, S3 };
-enum { FOURIER_A = 11, FOURIER_B = 22, V_C = 32, K_V = 33, STATIC_FACTOR = 34, B_M = 35 };
-enum { F_CL = 41, F_SL = 42, B_L = 46, KE_A = 47, KE_K = 48, KE_PHI = 49 };
-enum { OMEGA_STICK_M = 65, OMEGA_STICK_L = 66, N_PARAMS = 67 };
+/* The slots (J_M, S3, A0, B1, ..., N_PARAMS) are model.registry.P's, given on the compiler's command line
+ * by the bench (`slot_defines()`: -DJ_M=0 ...), so this file numbers none of them. */
+#ifndef N_PARAMS
+#error "build with the slot defines of model.registry.P (bench/bench_simulator.py: slot_defines())"
+#endif
 
 static double sgn(double x) { return x > 0.0 ? 1.0 : (x < 0.0 ? -1.0 : 0.0); }
 
@@ -96,10 +97,10 @@ int main(int argc, char **argv) {
         double t_s = p[K_S] * (r * theta_m + theta_err - theta_l);
         /* C(θ) and the Fourier ripple P(θ), harmonics by the angle-addition recurrence. */
         double c = (p[S1] * theta_m + p[S2]) * theta_m + p[S3];
-        double periodic = 0.5 * p[FOURIER_A];
+        double periodic = 0.5 * p[A0];
         double c1 = cos(theta_m), s1 = sin(theta_m), cn = c1, sn = s1;
         for (int n = 1; n <= harmonics; n++) {
-            periodic += p[FOURIER_A + n] * cn + p[FOURIER_B + n - 1] * sn;
+            periodic += p[A0 + n] * cn + p[B1 + n - 1] * sn;
             double cn_next = cn * c1 - sn * s1;
             sn = sn * c1 + cn * s1;
             cn = cn_next;

@@ -10,8 +10,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from model import kernel as k
 from model.plant import InputMode, Plant
+from model.registry import X
 
 
 class SteppedPlantSource:
@@ -31,12 +31,12 @@ class SteppedPlantSource:
     def __call__(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x = self.plant.x
         if self._device_minus_plant_s is None:
-            self._device_minus_plant_s = float(t_s[0]) - float(x[k.X_TIME])
+            self._device_minus_plant_s = float(t_s[0]) - float(x[X.TIME])
         theta_m, theta_l = np.empty(t_s.shape), np.empty(t_s.shape)
         for i, t in enumerate(t_s):
-            steps = round((t - self._device_minus_plant_s - x[k.X_TIME]) / self.dt_s)
+            steps = round((t - self._device_minus_plant_s - x[X.TIME]) / self.dt_s)
             if steps > 0:
-                step_times = self._device_minus_plant_s + x[k.X_TIME] + self.dt_s * np.arange(steps)
+                step_times = self._device_minus_plant_s + x[X.TIME] + self.dt_s * np.arange(steps)
                 self.plant.advance(self.drive(step_times), self.mode, dt_s=self.dt_s, decim=steps)
-            theta_m[i], theta_l[i] = x[k.X_THETA_M], x[k.X_THETA_L]
+            theta_m[i], theta_l[i] = x[X.THETA_M], x[X.THETA_L]
         return theta_m, theta_l

@@ -31,6 +31,7 @@ import numpy as np
 
 from model import kernel as k
 from model.params import HarmonicDriveModel
+from model.registry import FL, Law, P
 from model.run import Run
 from rig.config import RigConfig, load_rig_config
 from rig.experiments import experiment_named
@@ -220,7 +221,7 @@ def true_run(tr: TruthRun) -> Run:
     """The run with its sensors replaced by the truth: θ_m, ω_m, θ_l true, and i_a the current that
     holds the plant's true friction and load, (F_m + r·(F_l + τ_ext))/K_m (K_m·i_a less the inertial
     torque). The analysis of it is each metric's own definition applied to the truth."""
-    current = (tr.truth["f_m"] + tr.r * (tr.truth["f_l"] + tr.truth["tau_ext"])) / tr.p[k.K_M]
+    current = (tr.truth["f_m"] + tr.r * (tr.truth["f_l"] + tr.truth["tau_ext"])) / tr.p[P.K_M]
     columns = {"theta_m": tr.truth["theta_m"], "omega_m": tr.truth["omega_m"], "theta_l": tr.truth["theta_l"]}
     return _replaced(tr.run, {**columns, "i_a": current})
 
@@ -262,8 +263,8 @@ def _law_friction_vs_speed(
     torques: the seed's load sticks and slips at low speed (its kinematic error's speed A·k·ω_m exceeds
     r·ω_m), which lowers its mean friction; that is neither Coulomb nor viscous friction."""
     places = centre + np.linspace(-np.pi, np.pi, 720, endpoint=False)
-    load_law = int(tr.flags[k.FL_LOAD_LAW])
-    b_l = tr.p[k.B_L] if load_law != k.LAW_NONE else 0.0
+    load_law = int(tr.flags[FL.LOAD_LAW])
+    b_l = tr.p[P.B_L] if load_law != Law.NONE else 0.0
     speeds, friction = [], []
     for _, rows in windows:
         omega = float(np.mean(tr.truth["omega_m"][rows]))
@@ -355,7 +356,7 @@ def _pf_grid_metric(tr: TruthRun, key: str) -> float:
 
 def _speed_factor(tr: TruthRun) -> float:
     """1 + k_v·(|ω| − v_c) of the article law at the passes' speed."""
-    return 1.0 + tr.p[k.K_V] * (tr.params.speed_rad_s - tr.p[k.V_C])
+    return 1.0 + tr.p[P.K_V] * (tr.params.speed_rad_s - tr.p[P.V_C])
 
 
 def _pf_quad(tr: TruthRun, key: str) -> float:
@@ -363,17 +364,17 @@ def _pf_quad(tr: TruthRun, key: str) -> float:
     periodic part's mean a0/2, the motor's viscous b_m·|ω| and the load's friction r·|F_l| (true)."""
     factor = _speed_factor(tr)
     if key.startswith("quad_s1"):
-        return float(tr.p[k.S1] * factor)
+        return float(tr.p[P.S1] * factor)
     if key.startswith("quad_s2"):
-        return float(tr.p[k.S2] * factor)
+        return float(tr.p[P.S2] * factor)
     rows = _steady_rows(tr)
     load = tr.r * float(np.mean(np.abs(tr.truth["f_l"][rows])))
-    return float(tr.p[k.S3] * factor + 0.5 * tr.p[k.FOURIER_A] + tr.p[k.B_M] * tr.params.speed_rad_s + load)
+    return float(tr.p[P.S3] * factor + 0.5 * tr.p[P.A0] + tr.p[P.B_M] * tr.params.speed_rad_s + load)
 
 
 def _true_fourier(tr: TruthRun) -> tuple[np.ndarray, np.ndarray]:
     n = tr.params.harmonics
-    return tr.p[k.FOURIER_A + 1 : k.FOURIER_A + 1 + n], tr.p[k.FOURIER_B : k.FOURIER_B + n]
+    return tr.p[P.A0 + 1 : P.A0 + 1 + n], tr.p[P.B1 : P.B1 + n]
 
 
 def _pf_ripple(tr: TruthRun, key: str) -> float:
@@ -472,7 +473,7 @@ def _pulse_peak_current(tr: TruthRun, key: str) -> float:
     u, omega = tr.run["u"], tr.truth["omega_m"]
     peaks = []
     for on, _ in _pulse_rows(tr):
-        current = (u[on] - tr.p[k.K_B] * omega[on]) / tr.p[k.R_ARM]
+        current = (u[on] - tr.p[P.K_B] * omega[on]) / tr.p[P.R_ARM]
         peaks.append(float(np.max(np.abs(current))))
     return float(np.mean(peaks))
 
@@ -530,7 +531,7 @@ def _static_v(tr: TruthRun, row: int, direction: float) -> float:
     theta = np.asarray([tr.truth["theta_m"][row]])
     t_s, time_s = float(tr.truth["t_s"][row]), float(tr.truth["t"][row])
     f_s = float(k.static_motor_friction(tr.p, tr.flags, theta, direction, t_s, time_s)[0])
-    return tr.p[k.R_ARM] / tr.p[k.K_M] * (f_s + direction * tr.r * float(tr.truth["t_s"][row]))
+    return tr.p[P.R_ARM] / tr.p[P.K_M] * (f_s + direction * tr.r * float(tr.truth["t_s"][row]))
 
 
 def _stair_static_v(tr: TruthRun, key: str) -> float:
@@ -697,7 +698,7 @@ def _true_track(tr: TruthRun, rows: slice, kinematic_free: bool = False) -> Any:
 def _kinematic_error(tr: TruthRun, theta_m: np.ndarray) -> np.ndarray:
     if not tr.model.kinematic_error:
         return np.zeros_like(theta_m)
-    return tr.p[k.KE_A] * np.sin(tr.p[k.KE_K] * theta_m + tr.p[k.KE_PHI])
+    return tr.p[P.KE_A] * np.sin(tr.p[P.KE_K] * theta_m + tr.p[P.KE_PHI])
 
 
 def _side_and_name(key: str) -> tuple[str, str]:
@@ -852,7 +853,7 @@ differs from A by J_l·(k·ω_m)²/K_s (the load's inertia, 2 % at the seed ramp
 
 
 def _ke_amplitude(tr: TruthRun) -> float:
-    return float(tr.p[k.KE_A]) if tr.model.kinematic_error else 0.0
+    return float(tr.p[P.KE_A]) if tr.model.kinematic_error else 0.0
 
 
 _add(
@@ -888,7 +889,7 @@ _add(
     ),
     Check(
         "kinematic_error_cycles_per_turn",
-        lambda tr, key: float(tr.p[k.KE_K]) if tr.model.kinematic_error else math.nan,
+        lambda tr, key: float(tr.p[P.KE_K]) if tr.model.kinematic_error else math.nan,
         reason="plant law k: a whole number, exact",
     ),
     Check(
@@ -932,7 +933,7 @@ def _chirp_same_definition(tr: TruthRun, key: str) -> float:
 def _linear_plant(tr: TruthRun) -> tuple[float, float]:
     """(antiresonance, resonance) of the plant linearized about its mean speed [Hz]: i → ω_m has zeros at
     J_l·s² + b_l·s + K_s (the load's own mode) and poles where the motor's inertia joins it."""
-    j_m, j_l, r, k_s = tr.p[k.J_M], tr.p[k.J_L], tr.r, tr.p[k.K_S]
+    j_m, j_l, r, k_s = tr.p[P.J_M], tr.p[P.J_L], tr.r, tr.p[P.K_S]
     anti = math.sqrt(k_s / j_l) / (2 * math.pi)
     res = math.sqrt(k_s * (1.0 / j_l + r * r / j_m)) / (2 * math.pi)
     return anti, res
@@ -1055,7 +1056,7 @@ def _endurance_truth(tr: TruthRun, key: str) -> float:
     if key == "checkpoints":
         return float(checkpoints_due(tr.params))
     if key == "stiffness_last_nm_rad":
-        return float(tr.p[k.K_S])
+        return float(tr.p[P.K_S])
     names = sorted({str(seg["label"]).split("/")[0] for seg in segments_of(tr.run, CHECKPOINT_PREFIX)})
     levels = []
     for name in names:
@@ -1113,8 +1114,8 @@ def linearized_speed_frf(tr: TruthRun, freq_hz: np.ndarray) -> np.ndarray:
     up = k.steady_motor_friction(p, tr.flags, places, np.full(places.shape, mean_speed + delta), 0.0, 0.0)
     down = k.steady_motor_friction(p, tr.flags, places, np.full(places.shape, mean_speed - delta), 0.0, 0.0)
     c_m = float(np.mean(up - down)) / (2 * delta)
-    load_law = int(tr.flags[k.FL_LOAD_LAW])
-    b_l = p[k.B_L] if load_law != k.LAW_NONE else 0.0
-    j_m, j_l, k_s = p[k.J_M], p[k.J_L], p[k.K_S]
+    load_law = int(tr.flags[FL.LOAD_LAW])
+    b_l = p[P.B_L] if load_law != Law.NONE else 0.0
+    j_m, j_l, k_s = p[P.J_M], p[P.J_L], p[P.K_S]
     load = r * r * k_s * (j_l * s + b_l) / (j_l * s * s + b_l * s + k_s)
-    return np.asarray(p[k.K_M] / (j_m * s + c_m + load))
+    return np.asarray(p[P.K_M] / (j_m * s + c_m + load))

@@ -45,6 +45,7 @@ from model.feedforward import (
 )
 from model.params import HarmonicDriveModel
 from model.plant import kernel_vectors
+from model.registry import FL, Law, P
 
 
 @njit(cache=True)
@@ -61,22 +62,22 @@ def _motor_friction(
 @njit(cache=True)
 def _load_friction(p: np.ndarray, flags: np.ndarray, omega_l: np.ndarray) -> np.ndarray:
     """F_l at each ω_l: the moving branch of a Karnopp law, the steady state of LuGre/Dahl (0 at rest)."""
-    law = flags[k.FL_LOAD_LAW]
+    law = flags[FL.LOAD_LAW]
     out = np.zeros(omega_l.shape[0])
-    if law == k.LAW_NONE:
+    if law == Law.NONE:
         return out
     for i in range(omega_l.shape[0]):
         w = omega_l[i]
         if w == 0.0:
             continue
-        if law == k.LAW_LUGRE or law == k.LAW_DAHL:
-            level = p[k.F_CL]
-            if law == k.LAW_LUGRE:
-                x = w / p[k.OMEGA_SL]
-                level = p[k.F_CL] + (p[k.F_SL] - p[k.F_CL]) * math.exp(-x * x)
+        if law == Law.LUGRE or law == Law.DAHL:
+            level = p[P.F_CL]
+            if law == Law.LUGRE:
+                x = w / p[P.OMEGA_SL]
+                level = p[P.F_CL] + (p[P.F_SL] - p[P.F_CL]) * math.exp(-x * x)
         else:
             level, _ = k.load_levels(p, law, abs(w))
-        out[i] = math.copysign(level, w) + p[k.B_L] * w
+        out[i] = math.copysign(level, w) + p[P.B_L] * w
     return out
 
 

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import auto
 
 import numpy as np
 
 from model.errors import UserInputError
+from model.slots import Slots
 
 
 class InputSpecError(UserInputError):
@@ -31,27 +33,45 @@ class ProfileKind:
     vector: Callable[[dict[str, float], float], list[float]]
 
 
-# A profile vector, as model.kernel.profile_value reads it: q[Q_KIND] the kind, q[Q_OFFSET] added to
-# every value, q[Q_AMP] the amplitude (ramp: slope), then per kind in Q_A, Q_B, Q_C: step (delay),
-# sine (freq, phase), ramp (delay), chirps (f0, f1, sweep s), pulse (width, period, delay), staircase
-# (steps, hold). Here rather than in model.kernel: the command line reads KINDS for its help, and
-# model.kernel loads numba (~0.2 s).
-PROFILE_STEP, PROFILE_SINE, PROFILE_RAMP, PROFILE_CHIRP, PROFILE_LOG_CHIRP = range(5)
-PROFILE_PULSE, PROFILE_STAIRCASE, PROFILE_CONST = 5, 6, 7
-Q_KIND, Q_OFFSET, Q_AMP, Q_A, Q_B, Q_C = range(6)
-N_PROFILE = 6
+# Here rather than in model.kernel: the command line reads KINDS for its help, and model.kernel loads
+# numba (~0.2 s).
+class Q(Slots):
+    """A profile vector's layout, as model.kernel.profile_value reads it: q[Q.KIND] the kind, q[Q.OFFSET]
+    added to every value, q[Q.AMP] the amplitude (ramp: slope), then per kind in A, B, C: step (delay),
+    sine (freq, phase), ramp (delay), chirps (f0, f1, sweep s), pulse (width, period, delay), staircase
+    (steps, hold)."""
+
+    KIND = auto()
+    OFFSET = auto()
+    AMP = auto()
+    A = auto()
+    B = auto()
+    C = auto()
+
+
+class Kind(Slots):
+    """The profile kinds' codes in q[Q.KIND]."""
+
+    STEP = auto()
+    SINE = auto()
+    RAMP = auto()
+    CHIRP = auto()
+    LOG_CHIRP = auto()
+    PULSE = auto()
+    STAIRCASE = auto()
+    CONST = auto()
 
 
 def _step(q: dict[str, float], _: float) -> list[float]:
-    return [PROFILE_STEP, q["offset"], q["amp"], q["delay"]]
+    return [Kind.STEP, q["offset"], q["amp"], q["delay"]]
 
 
 def _sine(q: dict[str, float], _: float) -> list[float]:
-    return [PROFILE_SINE, q["offset"], q["amp"], q["freq"], q["phase"]]
+    return [Kind.SINE, q["offset"], q["amp"], q["freq"], q["phase"]]
 
 
 def _ramp(q: dict[str, float], _: float) -> list[float]:
-    return [PROFILE_RAMP, q["offset"], q["slope"], q["delay"]]
+    return [Kind.RAMP, q["offset"], q["slope"], q["delay"]]
 
 
 def _chirp(q: dict[str, float], duration_s: float) -> list[float]:
@@ -60,24 +80,24 @@ def _chirp(q: dict[str, float], duration_s: float) -> list[float]:
         raise InputSpecError("chirp: needs duration=S or a simulation duration")
     if q["log"] and not q["f0"] * q["f1"] > 0:
         raise InputSpecError("chirp: log=1 needs f0 and f1 nonzero and of one sign")
-    kind = PROFILE_LOG_CHIRP if q["log"] else PROFILE_CHIRP
+    kind = Kind.LOG_CHIRP if q["log"] else Kind.CHIRP
     return [kind, q["offset"], q["amp"], q["f0"], q["f1"], sweep_s]
 
 
 def _pulse(q: dict[str, float], _: float) -> list[float]:
     if q["period"] <= 0 or q["width"] <= 0:
         raise InputSpecError("pulse: width and period must be > 0")
-    return [PROFILE_PULSE, q["offset"], q["amp"], q["width"], q["period"], q["delay"]]
+    return [Kind.PULSE, q["offset"], q["amp"], q["width"], q["period"], q["delay"]]
 
 
 def _staircase(q: dict[str, float], _: float) -> list[float]:
     if q["steps"] < 2 or q["steps"] != int(q["steps"]) or q["hold"] <= 0:
         raise InputSpecError("staircase: needs a whole number of steps ≥ 2 and hold > 0")
-    return [PROFILE_STAIRCASE, q["offset"], q["amp"], q["steps"], q["hold"]]
+    return [Kind.STAIRCASE, q["offset"], q["amp"], q["steps"], q["hold"]]
 
 
 def _const(q: dict[str, float], _: float) -> list[float]:
-    return [PROFILE_CONST, q["value"], 0.0]
+    return [Kind.CONST, q["value"], 0.0]
 
 
 KINDS: dict[str, ProfileKind] = {
@@ -115,7 +135,7 @@ class InputProfile:
     def vector(self, duration_s: float = 0.0) -> np.ndarray:
         """The profile as `model.kernel.profile_value` evaluates it (in a run of `duration_s`); a value
         its kind refuses raises InputSpecError here."""
-        q = np.zeros(N_PROFILE)
+        q = np.zeros(len(Q))
         laid_out = KINDS[self.kind].vector(self.values, duration_s)
         q[: len(laid_out)] = laid_out
         return q

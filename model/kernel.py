@@ -14,9 +14,9 @@ exact replay of sim runs needs for a smooth cost.
 LuGre and Dahl are smooth laws: their bristle state is advanced with the exact solution of its linear
 ODE over the step (it is far too stiff for explicit Euler at useful steps).
 
-Parameters travel as one float64 vector `p` and one int64 vector `flags`, indexed by the constants
-below (numba folds module-level ints into constants). `model.plant` builds both from a validated
-`HarmonicDriveModel`; nothing else should index them.
+Parameters travel as one float64 vector `p` and one int64 vector `flags`, laid out by `model.registry`'s
+`P` and `FL` (`IntEnum`s, which numba folds into constants), the state by `X`, the output rows by `OUT`.
+`model.plant` builds the vectors from a validated `HarmonicDriveModel`; nothing else should fill them.
 
 Inside the loop the flags travel as a tuple (`structure`), so that a loop compiled for one model's
 structure (`specialized_profiles_loop`) sees them as constants: the compiler then drops the branches of
@@ -33,69 +33,12 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from model.inputs import (  # the profile vector's layout, evaluated by profile_value
-    PROFILE_CHIRP,
-    PROFILE_CONST,
-    PROFILE_LOG_CHIRP,
-    PROFILE_PULSE,
-    PROFILE_RAMP,
-    PROFILE_SINE,
-    PROFILE_STAIRCASE,
-    PROFILE_STEP,
-    Q_A,
-    Q_AMP,
-    Q_B,
-    Q_C,
-    Q_KIND,
-    Q_OFFSET,
-)
-
-# --- float parameter vector -------------------------------------------------------------------
-J_M, J_L, R_GEAR, K_M, K_B, R_ARM, K_S, D_S = range(8)
-S1, S2, S3 = 8, 9, 10
-FOURIER_A = 11  # a0..a10 at 11..21
-FOURIER_B = 22  # b1..b10 at 22..31
-V_C, K_V, STATIC_FACTOR, B_M = 32, 33, 34, 35
-F_CM, F_SM, OMEGA_SM, SIGMA0_M, SIGMA1_M = 36, 37, 38, 39, 40
-F_CL, F_SL, OMEGA_SL, SIGMA0_L, SIGMA1_L, B_L = 41, 42, 43, 44, 45, 46
-KE_A, KE_K, KE_PHI = 47, 48, 49
-NS_K1, NS_K2, NS_K3, NS_T1, NS_T2, NS_D1, NS_D2 = 50, 51, 52, 53, 54, 55, 56
-ST_F, ST_OMEGA, DIR_F, LOAD_C, HYS_T, HYS_DELTA, TH_D, TH_TAU = 57, 58, 59, 60, 61, 62, 63, 64
-OMEGA_STICK_M, OMEGA_STICK_L = 65, 66
-WEAR_K = 67
-N_PARAMS = 68
-
-# --- integer flags ----------------------------------------------------------------------------
-FL_MOTOR_LAW, FL_LOAD_LAW, FL_RIGID, FL_NONLINEAR, FL_HYSTERESIS, FL_KINEMATIC, FL_HARMONICS = range(7)
-FL_STRIBECK, FL_THERMAL, FL_WEAR = 7, 8, 9
-N_FLAGS = 10
-
-LAW_NONE, LAW_ARTICLE, LAW_COULOMB_VISCOUS, LAW_STRIBECK, LAW_LUGRE, LAW_DAHL = range(6)
+from model.inputs import Kind, Q  # the profile vector's layout, evaluated by profile_value
+from model.registry import FL, OUT, Law, Mode, P, X
 
 Structure = tuple[int, int, int, int, int, int, int, int, int, int]
-"""The flags as a tuple, indexed by the FL_ constants: what the loop branches on."""
-
-# --- state vector -----------------------------------------------------------------------------
-X_THETA_M, X_OMEGA_M, X_THETA_L, X_OMEGA_L, X_Z_M, X_Z_L, X_Z_H, X_TIME, X_TS, X_TRAVEL = range(10)
-N_STATE = 10  # X_TRAVEL: motor travel accumulated since the start, ∫|ω_m|dt [rad] (wear_drift)
-
-# --- input modes and output channels ------------------------------------------------------------
-MODE_VOLTAGE, MODE_CURRENT, MODE_TORQUE = 0, 1, 2
-(
-    OUT_T,
-    OUT_DRIVE,
-    OUT_TAU_EXT,
-    OUT_THETA_M,
-    OUT_OMEGA_M,
-    OUT_THETA_L,
-    OUT_OMEGA_L,
-    OUT_I_A,
-    OUT_TAU_M,
-    OUT_F_M,
-    OUT_F_L,
-    OUT_T_S,
-) = range(12)
-N_OUT = 12
+"""The flags as a tuple, indexed by `FL` (read `s[FL.RIGID.value]`: numba cannot index a tuple by an
+`IntEnum` member itself): what the loop branches on."""
 
 
 @njit(cache=True, inline="always")
@@ -114,15 +57,15 @@ def structure_of(flags: np.ndarray) -> Structure:
 @njit(cache=True, inline="always")
 def position_coulomb(p: np.ndarray, n_harmonics: int, theta_m: float) -> tuple[float, float]:
     """C(θ_m) and P(θ_m) of docs/MODEL.md; the harmonics by angle-addition recurrence (two trig calls)."""
-    c = (p[S1] * theta_m + p[S2]) * theta_m + p[S3]
-    periodic = 0.5 * p[FOURIER_A]
+    c = (p[P.S1] * theta_m + p[P.S2]) * theta_m + p[P.S3]
+    periodic = 0.5 * p[P.A0]
     if n_harmonics > 0:
         c1 = math.cos(theta_m)
         s1 = math.sin(theta_m)
         cn = c1
         sn = s1
         for n in range(1, n_harmonics + 1):
-            periodic += p[FOURIER_A + n] * cn + p[FOURIER_B + n - 1] * sn
+            periodic += p[P.A0 + n] * cn + p[P.B1 + n - 1] * sn
             cn, sn = cn * c1 - sn * s1, sn * c1 + cn * s1
     return c, periodic
 
@@ -141,33 +84,33 @@ def motor_levels(
 
     `time_s` is the time since the run started (thermal_drift), `travel_rad` the motor travel
     accumulated since then (wear_drift)."""
-    law = s[FL_MOTOR_LAW]
-    if law == LAW_ARTICLE:
-        c, periodic = position_coulomb(p, s[FL_HARMONICS], theta_m)
-        moving = c * (1.0 + p[K_V] * (speed - p[V_C])) + periodic
-        static = p[STATIC_FACTOR] * (c * (1.0 - p[K_V] * p[V_C]) + periodic)
-    elif law == LAW_COULOMB_VISCOUS:
-        moving = p[F_CM]
-        static = p[F_SM]
-    elif law == LAW_STRIBECK:
-        x = speed / p[OMEGA_SM]
-        moving = p[F_CM] + (p[F_SM] - p[F_CM]) * math.exp(-x * x)
-        static = p[F_SM]
+    law = s[FL.MOTOR_LAW.value]
+    if law == Law.ARTICLE:
+        c, periodic = position_coulomb(p, s[FL.HARMONICS.value], theta_m)
+        moving = c * (1.0 + p[P.K_V] * (speed - p[P.V_C])) + periodic
+        static = p[P.STATIC_FACTOR] * (c * (1.0 - p[P.K_V] * p[P.V_C]) + periodic)
+    elif law == Law.COULOMB_VISCOUS:
+        moving = p[P.F_CM]
+        static = p[P.F_SM]
+    elif law == Law.STRIBECK:
+        x = speed / p[P.OMEGA_SM]
+        moving = p[P.F_CM] + (p[P.F_SM] - p[P.F_CM]) * math.exp(-x * x)
+        static = p[P.F_SM]
     else:
         return 0.0, 0.0
-    if s[FL_STRIBECK]:
-        x = speed / p[ST_OMEGA]
-        moving += p[ST_F] * math.exp(-x * x)
-        static += p[ST_F]
-    extra = p[LOAD_C] * abs(t_s)
+    if s[FL.STRIBECK.value]:
+        x = speed / p[P.ST_OMEGA]
+        moving += p[P.ST_F] * math.exp(-x * x)
+        static += p[P.ST_F]
+    extra = p[P.LOAD_C] * abs(t_s)
     moving += extra
     static += extra
-    if s[FL_THERMAL]:
-        scale = 1.0 + p[TH_D] * (1.0 - math.exp(-time_s / p[TH_TAU]))
+    if s[FL.THERMAL.value]:
+        scale = 1.0 + p[P.TH_D] * (1.0 - math.exp(-time_s / p[P.TH_TAU]))
         moving *= scale
         static *= scale
-    if s[FL_WEAR]:
-        wear = 1.0 + p[WEAR_K] * travel_rad
+    if s[FL.WEAR.value]:
+        wear = 1.0 + p[P.WEAR_K] * travel_rad
         moving *= wear
         static *= wear
     return max(moving, 0.0), max(static, 0.0)
@@ -176,11 +119,11 @@ def motor_levels(
 @njit(cache=True, inline="always")
 def load_levels(p: np.ndarray, law: int, speed: float) -> tuple[float, float]:
     """Load friction magnitudes (moving at |ω_l| = speed, static) for a Karnopp-type load law."""
-    if law == LAW_COULOMB_VISCOUS:
-        return p[F_CL], p[F_SL]
-    if law == LAW_STRIBECK:
-        x = speed / p[OMEGA_SL]
-        return p[F_CL] + (p[F_SL] - p[F_CL]) * math.exp(-x * x), p[F_SL]
+    if law == Law.COULOMB_VISCOUS:
+        return p[P.F_CL], p[P.F_SL]
+    if law == Law.STRIBECK:
+        x = speed / p[P.OMEGA_SL]
+        return p[P.F_CL] + (p[P.F_SL] - p[P.F_CL]) * math.exp(-x * x), p[P.F_SL]
     return 0.0, 0.0
 
 
@@ -283,14 +226,14 @@ def _bristle(
 def _spring(p: np.ndarray, nonlinear: int, deflection: float) -> float:
     """Transmitted spring torque for a deflection at the output: linear K_s or catalog piecewise."""
     if not nonlinear:
-        return p[K_S] * deflection
+        return p[P.K_S] * deflection
     d = abs(deflection)
-    if d <= p[NS_D1]:
-        torque = p[NS_K1] * d
-    elif d <= p[NS_D2]:
-        torque = p[NS_T1] + p[NS_K2] * (d - p[NS_D1])
+    if d <= p[P.NS_D1]:
+        torque = p[P.NS_K1] * d
+    elif d <= p[P.NS_D2]:
+        torque = p[P.NS_T1] + p[P.NS_K2] * (d - p[P.NS_D1])
     else:
-        torque = p[NS_T2] + p[NS_K3] * (d - p[NS_D2])
+        torque = p[P.NS_T2] + p[P.NS_K3] * (d - p[P.NS_D2])
     return torque if deflection >= 0.0 else -torque
 
 
@@ -307,36 +250,36 @@ def profile_of(q: np.ndarray) -> Profile:
 @njit(cache=True, inline="always")
 def profile_value(q: Profile, t: float) -> float:
     """The input profile `q` at time `t` [s] (docs/INTERFACE.md's kinds; chirps as scipy.signal.chirp)."""
-    kind = int(q[Q_KIND])
-    offset = q[Q_OFFSET]
-    amp = q[Q_AMP]
-    if kind == PROFILE_SINE:
-        return offset + amp * math.sin(2.0 * math.pi * q[Q_A] * t + q[Q_B])
-    if kind == PROFILE_CONST:
+    kind = int(q[Q.KIND.value])
+    offset = q[Q.OFFSET.value]
+    amp = q[Q.AMP.value]
+    if kind == Kind.SINE:
+        return offset + amp * math.sin(2.0 * math.pi * q[Q.A.value] * t + q[Q.B.value])
+    if kind == Kind.CONST:
         return offset
-    if kind == PROFILE_STEP:
-        return offset + (amp if t >= q[Q_A] else 0.0)
-    if kind == PROFILE_RAMP:
-        return offset + amp * max(t - q[Q_A], 0.0)
-    if kind == PROFILE_CHIRP:
-        f0 = q[Q_A]
-        phase = 2.0 * math.pi * (f0 * t + 0.5 * ((q[Q_B] - f0) / q[Q_C]) * t * t)
+    if kind == Kind.STEP:
+        return offset + (amp if t >= q[Q.A.value] else 0.0)
+    if kind == Kind.RAMP:
+        return offset + amp * max(t - q[Q.A.value], 0.0)
+    if kind == Kind.CHIRP:
+        f0 = q[Q.A.value]
+        phase = 2.0 * math.pi * (f0 * t + 0.5 * ((q[Q.B.value] - f0) / q[Q.C.value]) * t * t)
         return offset + amp * math.sin(phase)  # a sine start: continuous from rest
-    if kind == PROFILE_LOG_CHIRP:
-        f0 = q[Q_A]
-        f1 = q[Q_B]
+    if kind == Kind.LOG_CHIRP:
+        f0 = q[Q.A.value]
+        f1 = q[Q.B.value]
         if f0 == f1:
             phase = 2.0 * math.pi * f0 * t
         else:
-            beta = q[Q_C] / math.log(f1 / f0)
-            phase = 2.0 * math.pi * beta * f0 * ((f1 / f0) ** (t / q[Q_C]) - 1.0)
+            beta = q[Q.C.value] / math.log(f1 / f0)
+            phase = 2.0 * math.pi * beta * f0 * ((f1 / f0) ** (t / q[Q.C.value]) - 1.0)
         return offset + amp * math.sin(phase)
-    if kind == PROFILE_PULSE:
-        on = t >= q[Q_C] and (t - q[Q_C]) % q[Q_B] < q[Q_A]
+    if kind == Kind.PULSE:
+        on = t >= q[Q.C.value] and (t - q[Q.C.value]) % q[Q.B.value] < q[Q.A.value]
         return offset + (amp if on else 0.0)
-    if kind == PROFILE_STAIRCASE:
-        steps = int(q[Q_A])
-        index = min(max(t // q[Q_B], 0.0), steps - 1.0)
+    if kind == Kind.STAIRCASE:
+        steps = int(q[Q.A.value])
+        index = min(max(t // q[Q.B.value], 0.0), steps - 1.0)
         # np.linspace(-amp, amp, steps)[index], its last level exactly +amp
         level = amp if index == steps - 1 else -amp + index * (2.0 * amp / (steps - 1))
         return offset + level
@@ -451,8 +394,8 @@ def specialized_profiles_loop(flags: np.ndarray) -> ProfilesLoop:
     on-disk cache, keyed by the structure), so it pays for long runs only.
     """
     key: Structure = tuple(int(f) for f in flags)  # type: ignore[assignment]
-    if len(key) != N_FLAGS:
-        raise ValueError(f"flags has {len(key)} entries, the kernel's layout {N_FLAGS}")
+    if len(key) != len(FL):
+        raise ValueError(f"flags has {len(key)} entries, the kernel's layout {len(FL)}")
     loop = _SPECIALIZED.get(key)
     if loop is None:
         loop = _SPECIALIZED[key] = _compile_profiles_loop(key)
@@ -517,33 +460,33 @@ def _advance(
     drive_profile = profile_of(drive_q) if profiles else (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     load_profile = profile_of(load_q) if profiles else (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     # A constant load profile (the usual case) is read once, not evaluated at every step.
-    fixed_load = profiles and load_profile[Q_KIND] == PROFILE_CONST
-    load_value = load_profile[Q_OFFSET] if fixed_load else 0.0
-    motor_law = s[FL_MOTOR_LAW]
-    load_law = s[FL_LOAD_LAW]
-    rigid = s[FL_RIGID]
-    nonlinear = s[FL_NONLINEAR]
-    hysteresis = s[FL_HYSTERESIS]
-    kinematic = s[FL_KINEMATIC]
+    fixed_load = profiles and load_profile[Q.KIND.value] == Kind.CONST.value
+    load_value = load_profile[Q.OFFSET.value] if fixed_load else 0.0
+    motor_law = s[FL.MOTOR_LAW.value]
+    load_law = s[FL.LOAD_LAW.value]
+    rigid = s[FL.RIGID.value]
+    nonlinear = s[FL.NONLINEAR.value]
+    hysteresis = s[FL.HYSTERESIS.value]
+    kinematic = s[FL.KINEMATIC.value]
     # The kinematic error's rate costs a cos per step; only damping, hysteresis and a rigid output use it.
-    needs_deflection_rate = rigid or hysteresis or p[D_S] != 0.0
-    motor_smooth = motor_law in (LAW_LUGRE, LAW_DAHL)
-    load_smooth = load_law in (LAW_LUGRE, LAW_DAHL)
-    r = p[R_GEAR]
-    j_m = p[J_M]
-    j_l = p[J_L]
+    needs_deflection_rate = rigid or hysteresis or p[P.D_S] != 0.0
+    motor_smooth = motor_law in (Law.LUGRE, Law.DAHL)
+    load_smooth = load_law in (Law.LUGRE, Law.DAHL)
+    r = p[P.R_GEAR]
+    j_m = p[P.J_M]
+    j_l = p[P.J_L]
     j_rigid = j_m + r * r * j_l
-    b_load = p[B_L] if load_law != LAW_NONE else 0.0
-    theta_m = x[X_THETA_M]
-    omega_m = x[X_OMEGA_M]
-    theta_l = x[X_THETA_L]
-    omega_l = x[X_OMEGA_L]
-    z_m = x[X_Z_M]
-    z_l = x[X_Z_L]
-    z_h = x[X_Z_H]
-    time_s = x[X_TIME]
-    t_s_prev = x[X_TS]
-    travel = x[X_TRAVEL]
+    b_load = p[P.B_L] if load_law != Law.NONE else 0.0
+    theta_m = x[X.THETA_M]
+    omega_m = x[X.OMEGA_M]
+    theta_l = x[X.THETA_L]
+    omega_l = x[X.OMEGA_L]
+    z_m = x[X.Z_M]
+    z_l = x[X.Z_L]
+    z_h = x[X.Z_H]
+    time_s = x[X.TIME]
+    t_s_prev = x[X.TS]
+    travel = x[X.TRAVEL]
     rows = 0
     until_row = 0  # steps until the next output row (a countdown: no integer division a step)
     for i in range(n_steps):
@@ -554,52 +497,52 @@ def _advance(
         else:
             load_torque = tau_ext[0] if const_load else tau_ext[i]
             value = drive[i]
-        if mode == MODE_VOLTAGE:
-            i_a = (value - p[K_B] * omega_m) / p[R_ARM]
-            torque_m = p[K_M] * i_a
-        elif mode == MODE_CURRENT:
+        if mode == Mode.VOLTAGE:
+            i_a = (value - p[P.K_B] * omega_m) / p[P.R_ARM]
+            torque_m = p[P.K_M] * i_a
+        elif mode == Mode.CURRENT:
             i_a = value
-            torque_m = p[K_M] * i_a
+            torque_m = p[P.K_M] * i_a
         else:
             torque_m = value
-            i_a = value / p[K_M]
+            i_a = value / p[P.K_M]
 
         theta_err = 0.0
         omega_err = 0.0
         if kinematic:
-            phase = p[KE_K] * theta_m + p[KE_PHI]
-            theta_err = p[KE_A] * math.sin(phase)
+            phase = p[P.KE_K] * theta_m + p[P.KE_PHI]
+            theta_err = p[P.KE_A] * math.sin(phase)
             if needs_deflection_rate:
-                omega_err = p[KE_A] * p[KE_K] * math.cos(phase) * omega_m
+                omega_err = p[P.KE_A] * p[P.KE_K] * math.cos(phase) * omega_m
 
         if rigid:
             t_s = t_s_prev
         else:
             deflection = r * theta_m + theta_err - theta_l
             deflection_rate = r * omega_m + omega_err - omega_l
-            t_s = _spring(p, nonlinear, deflection) + p[D_S] * deflection_rate + z_h
+            t_s = _spring(p, nonlinear, deflection) + p[P.D_S] * deflection_rate + z_h
             if hysteresis and deflection_rate != 0.0:
-                rate = abs(deflection_rate) / p[HYS_DELTA]
-                z_ss = p[HYS_T] * _sign(deflection_rate)
+                rate = abs(deflection_rate) / p[P.HYS_DELTA]
+                z_ss = p[P.HYS_T] * _sign(deflection_rate)
                 z_h = z_ss + (z_h - z_ss) * math.exp(-rate * dt)
 
         # Smooth (bristle) friction first; the Karnopp part then sees it as a known torque.
         f_smooth_m = 0.0
         if motor_smooth:
-            z_new = _bristle(z_m, omega_m, p[F_CM], p[F_SM], p[OMEGA_SM], p[SIGMA0_M], dt)
-            f_smooth_m = p[SIGMA0_M] * z_new + p[SIGMA1_M] * (z_new - z_m) / dt + p[B_M] * omega_m
+            z_new = _bristle(z_m, omega_m, p[P.F_CM], p[P.F_SM], p[P.OMEGA_SM], p[P.SIGMA0_M], dt)
+            f_smooth_m = p[P.SIGMA0_M] * z_new + p[P.SIGMA1_M] * (z_new - z_m) / dt + p[P.B_M] * omega_m
             z_m = z_new
         f_smooth_l = 0.0
         omega_l_now = r * omega_m + omega_err if rigid else omega_l
         if load_smooth:
-            z_new = _bristle(z_l, omega_l_now, p[F_CL], p[F_SL], p[OMEGA_SL], p[SIGMA0_L], dt)
-            f_smooth_l = p[SIGMA0_L] * z_new + p[SIGMA1_L] * (z_new - z_l) / dt + b_load * omega_l_now
+            z_new = _bristle(z_l, omega_l_now, p[P.F_CL], p[P.F_SL], p[P.OMEGA_SL], p[P.SIGMA0_L], dt)
+            f_smooth_l = p[P.SIGMA0_L] * z_new + p[P.SIGMA1_L] * (z_new - z_l) / dt + b_load * omega_l_now
             z_l = z_new
 
         speed_m = abs(omega_m)
         moving_m, static_m = motor_levels(p, s, theta_m, speed_m, t_s, time_s, travel)
-        asym_m = p[DIR_F]
-        viscous_m = 0.0 if motor_smooth else p[B_M]
+        asym_m = p[P.DIR_F]
+        viscous_m = 0.0 if motor_smooth else p[P.B_M]
         moving_l, static_l = load_levels(p, load_law, abs(omega_l_now))
         viscous_l = 0.0 if load_smooth else b_load
 
@@ -614,7 +557,7 @@ def _advance(
                 viscous_m + r * r * viscous_l,
                 j_rigid,
                 dt,
-                p[OMEGA_STICK_M],
+                p[P.OMEGA_STICK_M],
             )
             # Split the common friction for the record: the load share in proportion to the levels.
             share_l = r * moving_l / (moving_m + r * moving_l) if moving_m + r * moving_l > 0.0 else 0.0
@@ -625,38 +568,38 @@ def _advance(
             t_s_prev = t_s
         else:
             psi_m = torque_m - r * t_s - f_smooth_m
-            if motor_law == LAW_NONE or motor_smooth:
+            if motor_law == Law.NONE or motor_smooth:
                 new_omega = omega_m + dt * psi_m / j_m
                 f_m = f_smooth_m
             else:
                 new_omega, f_k = _karnopp(
-                    omega_m, psi_m, moving_m, static_m, asym_m, viscous_m, j_m, dt, p[OMEGA_STICK_M]
+                    omega_m, psi_m, moving_m, static_m, asym_m, viscous_m, j_m, dt, p[P.OMEGA_STICK_M]
                 )
                 f_m = f_smooth_m + f_k
             psi_l = t_s - load_torque - f_smooth_l
-            if load_law == LAW_NONE or load_smooth:
+            if load_law == Law.NONE or load_smooth:
                 new_omega_l = omega_l + dt * psi_l / j_l
                 f_l = f_smooth_l
             else:
                 new_omega_l, f_k = _karnopp(
-                    omega_l, psi_l, moving_l, static_l, 0.0, viscous_l, j_l, dt, p[OMEGA_STICK_L]
+                    omega_l, psi_l, moving_l, static_l, 0.0, viscous_l, j_l, dt, p[P.OMEGA_STICK_L]
                 )
                 f_l = f_smooth_l + f_k
 
         if until_row == 0:
             until_row = decim
-            out[rows, OUT_T] = time_s
-            out[rows, OUT_DRIVE] = value
-            out[rows, OUT_TAU_EXT] = load_torque
-            out[rows, OUT_THETA_M] = theta_m
-            out[rows, OUT_OMEGA_M] = omega_m
-            out[rows, OUT_THETA_L] = r * theta_m + theta_err if rigid else theta_l
-            out[rows, OUT_OMEGA_L] = omega_l_now
-            out[rows, OUT_I_A] = i_a
-            out[rows, OUT_TAU_M] = torque_m
-            out[rows, OUT_F_M] = f_m
-            out[rows, OUT_F_L] = f_l
-            out[rows, OUT_T_S] = t_s
+            out[rows, OUT.T] = time_s
+            out[rows, OUT.DRIVE] = value
+            out[rows, OUT.TAU_EXT] = load_torque
+            out[rows, OUT.THETA_M] = theta_m
+            out[rows, OUT.OMEGA_M] = omega_m
+            out[rows, OUT.THETA_L] = r * theta_m + theta_err if rigid else theta_l
+            out[rows, OUT.OMEGA_L] = omega_l_now
+            out[rows, OUT.I_A] = i_a
+            out[rows, OUT.TAU_M] = torque_m
+            out[rows, OUT.F_M] = f_m
+            out[rows, OUT.F_L] = f_l
+            out[rows, OUT.T_S] = t_s
             rows += 1
         until_row -= 1
 
@@ -673,17 +616,17 @@ def _advance(
         omega_l = r * omega_m
         theta_l = r * theta_m
         if kinematic:
-            theta_l += p[KE_A] * math.sin(p[KE_K] * theta_m + p[KE_PHI])
-    x[X_THETA_M] = theta_m
-    x[X_OMEGA_M] = omega_m
-    x[X_THETA_L] = theta_l
-    x[X_OMEGA_L] = omega_l
-    x[X_Z_M] = z_m
-    x[X_Z_L] = z_l
-    x[X_Z_H] = z_h
-    x[X_TIME] = time_s
-    x[X_TS] = t_s_prev
-    x[X_TRAVEL] = travel
+            theta_l += p[P.KE_A] * math.sin(p[P.KE_K] * theta_m + p[P.KE_PHI])
+    x[X.THETA_M] = theta_m
+    x[X.OMEGA_M] = omega_m
+    x[X.THETA_L] = theta_l
+    x[X.OMEGA_L] = omega_l
+    x[X.Z_M] = z_m
+    x[X.Z_L] = z_l
+    x[X.Z_H] = z_h
+    x[X.TIME] = time_s
+    x[X.TS] = t_s_prev
+    x[X.TRAVEL] = travel
     return rows
 
 
@@ -706,19 +649,19 @@ def steady_motor_friction(
     n = theta_m.shape[0]
     out = np.empty(n)
     s = structure_of(flags)
-    law = s[FL_MOTOR_LAW]
+    law = s[FL.MOTOR_LAW.value]
     for i in range(n):
         w = omega_m[i]
         direction = _sign(w)
-        if law in (LAW_LUGRE, LAW_DAHL):
-            g = p[F_CM]
-            if law == LAW_LUGRE:
-                x = w / p[OMEGA_SM]
-                g = p[F_CM] + (p[F_SM] - p[F_CM]) * math.exp(-x * x)
-            out[i] = direction * g + p[B_M] * w
+        if law in (Law.LUGRE, Law.DAHL):
+            g = p[P.F_CM]
+            if law == Law.LUGRE:
+                x = w / p[P.OMEGA_SM]
+                g = p[P.F_CM] + (p[P.F_SM] - p[P.F_CM]) * math.exp(-x * x)
+            out[i] = direction * g + p[P.B_M] * w
             continue
         moving, _ = motor_levels(p, s, theta_m[i], abs(w), t_s, time_s)
-        out[i] = direction * max(moving + p[DIR_F] * direction, 0.0) + p[B_M] * w
+        out[i] = direction * max(moving + p[P.DIR_F] * direction, 0.0) + p[P.B_M] * w
     return out
 
 
@@ -732,5 +675,5 @@ def static_motor_friction(
     s = structure_of(flags)
     for i in range(n):
         _, static = motor_levels(p, s, theta_m[i], 0.0, t_s, time_s)
-        out[i] = max(static + p[DIR_F] * direction, 0.0)
+        out[i] = max(static + p[P.DIR_F] * direction, 0.0)
     return out

@@ -15,18 +15,19 @@ from model.errors import UserInputError
 from model.inputs import InputProfile, parse_input_spec
 from model.params import HarmonicDriveModel
 from model.plant import INPUT_COLUMN, MODE_OF_COLUMN, MODES, InputMode, Plant
+from model.registry import OUT
 from model.run import Run, RunFormatError
 
 SIM_COLUMNS = ("t", "theta_m", "omega_m", "theta_l", "omega_l", "i_a", "tau_ext")
-DIAGNOSTIC_COLUMNS = {"tau_m": k.OUT_TAU_M, "F_m": k.OUT_F_M, "F_l": k.OUT_F_L, "T_s": k.OUT_T_S}
+DIAGNOSTIC_COLUMNS = {"tau_m": OUT.TAU_M, "F_m": OUT.F_M, "F_l": OUT.F_L, "T_s": OUT.T_S}
 _CHANNEL = {
-    "t": k.OUT_T,
-    "theta_m": k.OUT_THETA_M,
-    "omega_m": k.OUT_OMEGA_M,
-    "theta_l": k.OUT_THETA_L,
-    "omega_l": k.OUT_OMEGA_L,
-    "i_a": k.OUT_I_A,
-    "tau_ext": k.OUT_TAU_EXT,
+    "t": OUT.T,
+    "theta_m": OUT.THETA_M,
+    "omega_m": OUT.OMEGA_M,
+    "theta_l": OUT.THETA_L,
+    "omega_l": OUT.OMEGA_L,
+    "i_a": OUT.I_A,
+    "tau_ext": OUT.TAU_EXT,
 }
 
 
@@ -48,7 +49,7 @@ def _run_from_rows(
     columns = {name: rows[:, ch].copy() for name, ch in _CHANNEL.items()}
     if t is not None:
         columns["t"] = t.copy()
-    columns[INPUT_COLUMN[mode]] = rows[:, k.OUT_DRIVE].copy()
+    columns[INPUT_COLUMN[mode]] = rows[:, OUT.DRIVE].copy()
     if diagnostics:
         columns.update({name: rows[:, ch].copy() for name, ch in DIAGNOSTIC_COLUMNS.items()})
     return Run(columns, meta)
@@ -139,14 +140,14 @@ def simulate_stream(
     meta = _meta(model, rate_hz, experiment="simulate", input=profile.spec, input_mode=mode, dt_s=dt_s)
     if load.kind != "const" or load.values["value"] != 0.0:
         meta["tau_ext"] = load.spec
-    channels = {**_CHANNEL, INPUT_COLUMN[mode]: k.OUT_DRIVE}
+    channels = {**_CHANNEL, INPUT_COLUMN[mode]: OUT.DRIVE}
     if diagnostics:
         channels.update(DIAGNOSTIC_COLUMNS)
 
     def blocks() -> Iterator[dict[str, np.ndarray]]:
         plant = Plant(model)
         plant.reset(theta_m=theta_m0)
-        out = np.empty((chunk // decim, k.N_OUT))
+        out = np.empty((chunk // decim, len(OUT)))
         code = MODES[mode]
         loop = k.profiles_loop(plant.flags, specialized=n_steps >= SPECIALIZE_STEPS)
         for first in range(0, n_steps, chunk):
@@ -240,7 +241,7 @@ def replay_rows(
     intervals = np.diff(t)
     counts = np.array([substeps(h, dt_s) for h in intervals])
     steps = intervals / counts
-    rows = np.empty((len(t), k.N_OUT))
+    rows = np.empty((len(t), len(OUT)))
     if np.allclose(steps, steps[0], rtol=1e-9, atol=0.0) and np.all(counts == counts[0]):
         # Regular time base: one compiled call for the whole run.
         n = int(counts[0])

@@ -42,8 +42,8 @@ from drivers.daq_protocol import (
     encode_reply_frame,
     split_tag,
 )
-from model import kernel as k
 from model.plant import Plant
+from model.registry import X
 from rig.config import Sensors
 
 Source = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -99,7 +99,7 @@ class PlantStateSource:
     def record(self, t_host_s: float) -> None:
         """Keep the plant's present state as its state from `t_host_s` on (times never go back)."""
         x = self.plant.x
-        theta_m, theta_l = float(x[k.X_THETA_M]), float(x[k.X_THETA_L])
+        theta_m, theta_l = float(x[X.THETA_M]), float(x[X.THETA_L])
         with self._lock:
             i = self._count % self.HISTORY
             self._t_s[i], self._theta_m[i], self._theta_l[i] = t_host_s, theta_m, theta_l
@@ -110,7 +110,7 @@ class PlantStateSource:
         with self._lock:
             if not self._count:
                 x = self.plant.x
-                return np.full(t_s.shape, x[k.X_THETA_M]), np.full(t_s.shape, x[k.X_THETA_L])
+                return np.full(t_s.shape, x[X.THETA_M]), np.full(t_s.shape, x[X.THETA_L])
             slots = [self._slot(t) for t in times]
             theta_m = [self._theta_m[i] for i in slots]
             theta_l = [self._theta_l[i] for i in slots]

@@ -19,6 +19,7 @@ from numba import njit
 from model import kernel as k
 from model.feedforward import FF_THETA, N_FF_COLUMNS, FeedForwardTrack, loop_torque_nm
 from model.plant import Plant
+from model.registry import N_OUT, OUT, Mode, P, X
 from rig.config import RigConfig
 from rig.control import N_CONTROL_STATE, S_PREV_POSITION_REF, S_RATE, gains_vector, position_p, velocity_pi
 from rig.interface import SAMPLE_COLUMNS, ControlMode
@@ -76,20 +77,20 @@ _NO_TRUTH = np.empty((0, len(TRUTH_COLUMNS)))
 
 @njit(cache=True)
 def _truth_row(rows: np.ndarray, t: float, truth_row: np.ndarray) -> None:
-    """One cycle's truth from its substeps' kernel rows (model.kernel's OUT_ columns)."""
+    """One cycle's truth from its substeps' kernel rows (model.registry's OUT columns)."""
     n = rows.shape[0]
     truth_row[T_T] = t
-    truth_row[T_THETA_M] = rows[0, k.OUT_THETA_M]
-    truth_row[T_OMEGA_M] = rows[0, k.OUT_OMEGA_M]
-    truth_row[T_THETA_L] = rows[0, k.OUT_THETA_L]
-    truth_row[T_OMEGA_L] = rows[0, k.OUT_OMEGA_L]
+    truth_row[T_THETA_M] = rows[0, OUT.THETA_M]
+    truth_row[T_OMEGA_M] = rows[0, OUT.OMEGA_M]
+    truth_row[T_THETA_L] = rows[0, OUT.THETA_L]
+    truth_row[T_OMEGA_L] = rows[0, OUT.OMEGA_L]
     for column, out in (
-        (T_I_A, k.OUT_I_A),
-        (T_TAU_M, k.OUT_TAU_M),
-        (T_TAU_EXT, k.OUT_TAU_EXT),
-        (T_T_S, k.OUT_T_S),
-        (T_F_M, k.OUT_F_M),
-        (T_F_L, k.OUT_F_L),
+        (T_I_A, OUT.I_A),
+        (T_TAU_M, OUT.TAU_M),
+        (T_TAU_EXT, OUT.TAU_EXT),
+        (T_T_S, OUT.T_S),
+        (T_F_M, OUT.F_M),
+        (T_F_L, OUT.F_L),
     ):
         total = 0.0
         for j in range(n):
@@ -98,8 +99,8 @@ def _truth_row(rows: np.ndarray, t: float, truth_row: np.ndarray) -> None:
     stuck_m = 0
     stuck_l = 0
     for j in range(n):
-        stuck_m += rows[j, k.OUT_OMEGA_M] == 0.0
-        stuck_l += rows[j, k.OUT_OMEGA_L] == 0.0
+        stuck_m += rows[j, OUT.OMEGA_M] == 0.0
+        stuck_l += rows[j, OUT.OMEGA_L] == 0.0
     truth_row[T_STUCK_M] = stuck_m / n
     truth_row[T_STUCK_L] = stuck_l / n
 
@@ -139,9 +140,9 @@ def run_cycles(
     held = np.empty(substeps)
     load = np.empty(1)
     decim = 1 if record else substeps
-    row_buf = np.empty((substeps if record else 1, k.N_OUT))
+    row_buf = np.empty((substeps if record else 1, N_OUT))
     for c in range(setpoint.shape[0]):
-        theta = x[k.X_THETA_M]
+        theta = x[X.THETA_M]
         theta_meas = math.floor(theta / quantum + 0.5) * quantum if quantum > 0.0 else theta
         raw_speed = (theta_meas - sensor_state[M_THETA_PREV]) / period
         sensor_state[M_THETA_PREV] = theta_meas
@@ -152,9 +153,9 @@ def run_cycles(
         position_error = 0.0
         if mode == 0:
             u = sp
-            i_true = (u - p[k.K_B] * x[k.X_OMEGA_M]) / p[k.R_ARM]
+            i_true = (u - p[P.K_B] * x[X.OMEGA_M]) / p[P.R_ARM]
             i_cmd = i_true
-            plant_mode = k.MODE_VOLTAGE
+            plant_mode = Mode.VOLTAGE
             value = u
         else:
             if mode == 1:
@@ -175,7 +176,7 @@ def run_cycles(
             i_cmd = min(max(i_cmd, i_lo), i_hi)
             u = drive[D_R] * i_cmd + back_emf
             i_true = i_cmd
-            plant_mode = k.MODE_CURRENT
+            plant_mode = Mode.CURRENT
             value = i_cmd
         i_meas = i_true + drive[D_CURRENT_NOISE] * noise[c, 0]
 
@@ -185,7 +186,7 @@ def run_cycles(
         out[c, C_TAU] = tau_ext[c]
         out[c, C_THETA_M] = theta_meas
         out[c, C_OMEGA_M] = omega_meas
-        out[c, C_THETA_L] = x[k.X_THETA_L] + drive[D_LOAD_NOISE] * noise[c, 1]
+        out[c, C_THETA_L] = x[X.THETA_L] + drive[D_LOAD_NOISE] * noise[c, 1]
         out[c, C_I_A] = i_meas
         out[c, C_SETPOINT] = sp
         code = envelope_breach(lim, u, i_meas, omega_meas, theta_meas, position_error)
@@ -244,10 +245,10 @@ class SimulatedDrive:
 
     def reset_loops(self) -> None:
         """Clear integrators and filters, as a drive does on enable; no bump in the speed estimate."""
-        theta = float(self.plant.x[k.X_THETA_M])
+        theta = float(self.plant.x[X.THETA_M])
         quantum = self.drive[D_QUANTUM]
         self.sensor_state[M_THETA_PREV] = math.floor(theta / quantum + 0.5) * quantum if quantum else theta
-        self.sensor_state[M_OMEGA] = float(self.plant.x[k.X_OMEGA_M])
+        self.sensor_state[M_OMEGA] = float(self.plant.x[X.OMEGA_M])
         self.control_state[:] = 0.0
         self.control_state[S_PREV_POSITION_REF] = self.sensor_state[M_THETA_PREV]
         self._mode: ControlMode | None = None

@@ -7,9 +7,9 @@ import pytest
 from reference import variant
 from scipy.optimize import brentq
 
-from model import kernel as k
 from model.params import HarmonicDriveModel
 from model.plant import Plant
+from model.registry import OUT
 
 DT = 1e-4
 F_C, F_S, OMEGA_S = 0.05, 0.08, 2.0
@@ -104,9 +104,9 @@ def test_dahl_torque_displacement_loop_has_hysteresis(seed_rigid: HarmonicDriveM
     t = np.arange(int(2.0 / DT)) * DT
     rows = plant.advance(0.04 * np.sin(2 * np.pi * 1.0 * t), "torque", 0.0, DT, 1)
     second_cycle = t >= 1.0
-    theta = rows[second_cycle, k.OUT_THETA_M]
-    friction = rows[second_cycle, k.OUT_F_M]
+    theta = rows[second_cycle, OUT.THETA_M]
+    friction = rows[second_cycle, OUT.F_M]
     # The friction–displacement loop encloses an area: energy dissipated per cycle > 0.
     area = np.sum(friction[:-1] * np.diff(theta))
     assert area > 1e-6
-    assert np.max(np.abs(friction)) <= F_C + B["m"] * np.max(np.abs(rows[:, k.OUT_OMEGA_M])) + 1e-9
+    assert np.max(np.abs(friction)) <= F_C + B["m"] * np.max(np.abs(rows[:, OUT.OMEGA_M])) + 1e-9

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from reference import variant
 
-from model import kernel as k
 from model.params import HarmonicDriveModel, load_model
 from model.plant import Plant
+from model.registry import X
 
 DT_S = 1e-4
 F_C = 0.05  # N·m: Coulomb level of the test axis
@@ -36,7 +36,7 @@ def _coulomb_axis() -> tuple[Plant, float, float]:
 
 def _speed_at(plant: Plant, torque_nm: float, steps: int) -> float:
     plant.advance(np.full(steps, torque_nm), mode="torque", dt_s=DT_S)
-    return float(plant.x[k.X_OMEGA_M])
+    return float(plant.x[X.OMEGA_M])
 
 
 # Rounding is all that is left when every phase's acceleration is constant and every event is located
@@ -92,7 +92,7 @@ def _end_positions(model: HarmonicDriveModel, field: str, relative: np.ndarray) 
         mech = model.mechanics
         plant = Plant(variant(model, mechanics={field: getattr(mech, field) * (1 + rel)}))
         plant.advance(torque, mode="torque", dt_s=DT_S)
-        ends.append(plant.x[k.X_THETA_M])
+        ends.append(plant.x[X.THETA_M])
     return np.array(ends)
 
 

@@ -18,6 +18,7 @@ from model import kernel as k
 from model.inputs import parse_input_spec
 from model.params import HarmonicDriveModel, load_model
 from model.plant import Plant
+from model.registry import OUT, Mode
 from model.simulate import simulate
 
 DT_S = 1e-4
@@ -65,12 +66,12 @@ def _run(loop: k.ProfilesLoop, plant: Plant) -> tuple[np.ndarray, np.ndarray]:
     plant.reset(theta_m=0.3)
     drive_q = parse_input_spec("sine:amp=2,freq=0.5").vector(STEPS * DT_S)
     load_q = parse_input_spec("sine:amp=0.3,freq=0.7").vector(STEPS * DT_S)
-    out = np.empty((-(-STEPS // DECIM), k.N_OUT))
+    out = np.empty((-(-STEPS // DECIM), len(OUT)))
     rows = 0
     for first in range(0, STEPS, CHUNK):
         n = min(CHUNK, STEPS - first)
         rows += loop(
-            plant.p, plant.x, k.MODE_VOLTAGE, drive_q, load_q, float(first), n, DT_S, DECIM, out[rows:]
+            plant.p, plant.x, Mode.VOLTAGE, drive_q, load_q, float(first), n, DT_S, DECIM, out[rows:]
         )
     return out[:rows], plant.x.copy()
 
@@ -83,7 +84,7 @@ def test_specialized_loop_equals_the_general_loop_bit_for_bit(name: str) -> None
     special_rows, special_x = _run(k.specialized_profiles_loop(plant.flags), plant)
     assert general_rows.shape[0] == -(-STEPS // DECIM)
     # The run must move and reverse, or the friction branches under test were never taken.
-    omega = general_rows[:, k.OUT_OMEGA_M]
+    omega = general_rows[:, OUT.OMEGA_M]
     assert omega.max() > 0.1 and omega.min() < -0.1, name
     np.testing.assert_array_equal(special_rows, general_rows)
     np.testing.assert_array_equal(special_x, general_x)

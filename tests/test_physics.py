@@ -9,9 +9,9 @@ import pytest
 from reference import article_friction, article_static, variant
 from scipy import signal
 
-from model import kernel as k
 from model.params import HarmonicDriveModel
 from model.plant import Plant
+from model.registry import OUT
 from model.run import Run
 from model.simulate import replay, simulate
 
@@ -42,9 +42,9 @@ def test_friction_at_constant_speed_equals_formula(seed: HarmonicDriveModel, the
     _relaxed(plant, theta_m, omega_m)
     row = plant.advance(np.array([expected]), "torque", 0.0, DT, 1)[0]
     # Tolerance: float rounding of a sum of ~25 terms of size ≤ 0.1 N·m.
-    assert row[k.OUT_F_M] == pytest.approx(expected, rel=1e-12, abs=1e-15)
+    assert row[OUT.F_M] == pytest.approx(expected, rel=1e-12, abs=1e-15)
     assert plant.state.omega_m == pytest.approx(omega_m, rel=1e-12)
-    assert np.sign(row[k.OUT_F_M]) == np.sign(omega_m), "friction must oppose motion"
+    assert np.sign(row[OUT.F_M]) == np.sign(omega_m), "friction must oppose motion"
 
 
 def test_steady_friction_api_matches_formula(seed: HarmonicDriveModel):
@@ -90,15 +90,15 @@ def test_stuck_holds_below_static_friction_and_breaks_away_above(
     plant = Plant(seed_rigid)
     plant.reset(theta_m=theta_m)
     rows = plant.advance(np.full(steps, direction * 0.999 * capacity), "torque", 0.0, DT, 1)
-    assert np.all(rows[:, k.OUT_OMEGA_M] == 0.0), "stuck must stay stuck while |ψ| ≤ f_s"
+    assert np.all(rows[:, OUT.OMEGA_M] == 0.0), "stuck must stay stuck while |ψ| ≤ f_s"
     assert plant.state.theta_m == theta_m
-    held = rows[:, k.OUT_F_M] + seed_rigid.mechanics.r * rows[:, k.OUT_F_L]
+    held = rows[:, OUT.F_M] + seed_rigid.mechanics.r * rows[:, OUT.F_L]
     assert np.allclose(held, direction * 0.999 * capacity, rtol=1e-12), "stuck: friction equals ψ"
 
     plant.reset(theta_m=theta_m)
     rows = plant.advance(np.full(steps, direction * 1.001 * capacity), "torque", 0.0, DT, 1)
     # It breaks away; it may stick again further on, where the position-dependent friction is higher.
-    assert direction * rows[1, k.OUT_OMEGA_M] > 0, "it must break away above f_s at once"
+    assert direction * rows[1, OUT.OMEGA_M] > 0, "it must break away above f_s at once"
     assert direction * (plant.state.theta_m - theta_m) > 0
 
 

@@ -16,11 +16,11 @@ import pytest
 import scipy.io
 import scipy.signal
 
-from model import kernel as k
 from model import simulate as simulate_module
 from model.inputs import InputSpecError, parse_input_spec
 from model.params import load_model
 from model.plant import Plant
+from model.registry import OUT
 from model.run import RunFormatError
 from model.simulate import CHUNK_ROWS, simulate, simulate_stream
 from rig.store.runfile import ROW_GROUP_ROWS, RunFileWriter, read_run, write_stream
@@ -44,10 +44,10 @@ def test_chunked_simulation_equals_one_call_over_the_whole_duration(monkeypatch:
     rows = plant.advance(drive, "voltage", load, dt_s, 250)
     assert len(run) == rows.shape[0] == 360
     # Bit for bit: the chunks carry the full state, so splitting the loop changes no arithmetic.
-    np.testing.assert_array_equal(run["theta_m"], rows[:, k.OUT_THETA_M])
-    np.testing.assert_array_equal(run["theta_l"], rows[:, k.OUT_THETA_L])
-    np.testing.assert_array_equal(run["u"], rows[:, k.OUT_DRIVE])
-    np.testing.assert_array_equal(run["tau_ext"], rows[:, k.OUT_TAU_EXT])
+    np.testing.assert_array_equal(run["theta_m"], rows[:, OUT.THETA_M])
+    np.testing.assert_array_equal(run["theta_l"], rows[:, OUT.THETA_L])
+    np.testing.assert_array_equal(run["u"], rows[:, OUT.DRIVE])
+    np.testing.assert_array_equal(run["tau_ext"], rows[:, OUT.TAU_EXT])
 
 
 def test_a_stream_yields_at_most_one_chunk_of_samples_at_a_time() -> None:

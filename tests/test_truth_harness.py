@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from hdrig_testing import truth as T  # noqa: N812 (the harness, short)
-from model import kernel as k
+from model.registry import P
 from rig.experiments import EXPERIMENTS
 from rig.experiments.tracking import ZERO_WINDOW_S
 from rig.interface import ControlMode, Segment
@@ -192,9 +192,9 @@ def test_truth_is_the_plant_behind_the_samples() -> None:
     # friction reported as the torque consistent with the velocity update). Float rounding: 1e-9.
     period = 1.0 / T.CFG.sample_rate_hz
     motor = truth["tau_m"] - r * truth["t_s"] - truth["f_m"]
-    np.testing.assert_allclose(p[k.J_M] * np.diff(truth["omega_m"]) / period, motor[:-1], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(p[P.J_M] * np.diff(truth["omega_m"]) / period, motor[:-1], rtol=0, atol=1e-9)
     load = truth["t_s"] - truth["tau_ext"] - truth["f_l"]
-    np.testing.assert_allclose(p[k.J_L] * np.diff(truth["omega_l"]) / period, load[:-1], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(p[P.J_L] * np.diff(truth["omega_l"]) / period, load[:-1], rtol=0, atol=1e-9)
     # Stuck: the ramp through zero holds the motor at exactly zero speed for a while.
     assert np.any(truth["stuck_m"] == 1.0)
     assert np.all(truth["omega_m"][truth["stuck_m"] == 1.0] == 0.0)

@@ -1,31 +1,30 @@
 """Model parameters by name, for fitting: read and replace leaf values of a model file.
 
 A parameter name is a docs/MODEL.md symbol (`s3`, `K_s`, `f_cl`...), unique in a model file, or an element
-of the Fourier vectors written `a0`..`a10`, `b1`..`b10`. Replacing values goes through the model's
-validation, so a fit can never produce a model file that does not load.
+of the Fourier vectors written `a0`..`a10`, `b1`..`b10`: an entry of `model.registry.PARAMETERS`, which says
+where it lives. Replacing values goes through the model's validation, so a fit can never produce a model
+file that does not load.
 """
 
 from __future__ import annotations
 
-import re
 from typing import Any
 
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel, parse_model
-
-_FOURIER = re.compile(r"([ab])(\d+)")
+from model.registry import parameter
 
 
 def _locate(data: dict[str, Any], name: str) -> tuple[dict[str, Any], str, int | None]:
     """The section dict, key, and (for a_n/b_n) index holding the parameter `name`."""
-    match = _FOURIER.fullmatch(name)
-    key, index = (match.group(1), int(match.group(2))) if match else (name, None)
-    if key == "b" and index is not None:
-        index -= 1  # b1 is the first sine coefficient
-    for section in data.values():
-        if isinstance(section, dict) and key in section:
-            return section, key, index
-    raise UserInputError(f"parameter {name!r} is not in the model (its sections: {', '.join(data)})")
+    entry = parameter(name)
+    section = data.get(entry.section)
+    if not isinstance(section, dict) or entry.field not in section:
+        raise UserInputError(
+            f"parameter {name!r} is not in the model ({entry.section}.{entry.field} is not set;"
+            f" its sections: {', '.join(data)})"
+        )
+    return section, entry.field, entry.index
 
 
 def get_values(model: HarmonicDriveModel, names: list[str]) -> dict[str, float]:

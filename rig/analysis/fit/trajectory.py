@@ -30,15 +30,15 @@ import numpy as np
 from scipy.optimize import OptimizeResult, least_squares
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from model import kernel as k
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from model.plant import INPUT_COLUMN, InputMode, Plant
+from model.registry import OUT, X
 from model.run import Run
 from model.simulate import replay_mode, replay_rows, substeps
 from rig.analysis.fit.parameters import get_values, with_values
 
-CHANNELS = {"theta_m": k.OUT_THETA_M, "theta_l": k.OUT_THETA_L}
+CHANNELS = {"theta_m": OUT.THETA_M, "theta_l": OUT.THETA_L}
 """Positions only: a drive's speed is a filtered encoder difference, which the true speed of the model
 would be compared to with a lag and a bias; positions are only quantized and noisy."""
 SIGNED = re.compile(r"s1|s2|a\d+|b\d+|k_v|phi|f_dir|d_th")
@@ -246,7 +246,7 @@ class _Replay:
             rows = plant.advance(self.drive, self.mode, self.load, self.segments[0][2], self.segments[0][1])
         else:
             parts, first = [], 0
-            speeds = [k.X_OMEGA_M, k.X_OMEGA_L]
+            speeds = [X.OMEGA_M, X.OMEGA_L]
             for i, (count, n, h) in enumerate(self.segments):
                 stop = first + count
                 if i + 1 == len(self.segments):

@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from model import kernel as k
 from model.params import N_FOURIER, HarmonicDriveModel
+from model.registry import OUT, SECTION_OWNERS, owned_by, parameter
 from rig.analysis.fit.parameters import get_values
 from rig.analysis.gaps.locate import CHANNEL_UNITS
 from rig.analysis.gaps.residual import Residual
@@ -57,6 +57,16 @@ class Candidate:
     fit: list[str]  # parameters the simulator fit refines: the effect's own, then those it interacts with
     own: list[str]  # the effect's own parameters (every new one): they must come out determined
     ties: dict[str, str] = field(default_factory=dict)  # parameter ← parameter it follows
+
+    def __post_init__(self) -> None:
+        # The names are the registry's, and an effect's own parameters are those the registry gives it
+        # (the friction effects that are no section of their own share the motor friction's).
+        owner = self.effect if self.effect in SECTION_OWNERS.values() else "motor_friction"
+        for name in (*self.fit, *self.ties, *self.ties.values()):
+            parameter(name)
+        strangers = [name for name in self.own if parameter(name).owner != owner]
+        if strangers:
+            raise ValueError(f"{self.effect}: the registry gives it no parameter {', '.join(strangers)}")
 
 
 def cv_regression(y: np.ndarray, X: np.ndarray, folds: np.ndarray) -> tuple[float, np.ndarray]:
@@ -241,7 +251,13 @@ def screen_stribeck(ctx: Context) -> Candidate | None:
     )
     sections = ctx.with_level({"stribeck": {"f_st": f_st, "omega_st": omega_s}}, level)
     return Candidate(
-        "stribeck", "motor", score, evidence, sections, ["f_st", "omega_st", ctx.level], ["f_st", "omega_st"]
+        "stribeck",
+        "motor",
+        score,
+        evidence,
+        sections,
+        [*owned_by("stribeck"), ctx.level],
+        [*owned_by("stribeck")],
     )
 
 
@@ -262,10 +278,10 @@ def screen_static(ctx: Context) -> Candidate | None:
         rows = r.rows[s.stuck]
         # ψ: everything but friction. Where the model breaks away, the friction it applies is its static
         # level, so |ψ| / |friction| > 1 says how much more the data held; where it holds, the ratio is 1.
-        push = rows[:, k.OUT_TAU_M] - ctx.model.mechanics.r * (
-            rows[:, k.OUT_TAU_EXT] if r.rigid else rows[:, k.OUT_T_S]
+        push = rows[:, OUT.TAU_M] - ctx.model.mechanics.r * (
+            rows[:, OUT.TAU_EXT] if r.rigid else rows[:, OUT.T_S]
         )
-        limit = np.abs(rows[:, k.OUT_F_M] + (ctx.model.mechanics.r * rows[:, k.OUT_F_L] if r.rigid else 0.0))
+        limit = np.abs(rows[:, OUT.F_M] + (ctx.model.mechanics.r * rows[:, OUT.F_L] if r.rigid else 0.0))
         ok = limit > 0
         ratios.append(np.abs(push[ok]) / limit[ok])
     ratio = np.concatenate(ratios)
@@ -364,7 +380,13 @@ def screen_direction(ctx: Context) -> Candidate | None:
     )
     sections = ctx.with_level({"direction_asymmetry": {"f_dir": f_dir}}, level)
     return Candidate(
-        "direction_asymmetry", "motor", score, evidence, sections, ["f_dir", ctx.level], ["f_dir"]
+        "direction_asymmetry",
+        "motor",
+        score,
+        evidence,
+        sections,
+        [*owned_by("direction_asymmetry"), ctx.level],
+        [*owned_by("direction_asymmetry")],
     )
 
 
@@ -382,7 +404,13 @@ def screen_load_dependent(ctx: Context) -> Candidate | None:
     )
     sections = ctx.with_level({"load_dependent_friction": {"c_Ts": c_ts}}, level)
     return Candidate(
-        "load_dependent_friction", "motor", score, evidence, sections, ["c_Ts", ctx.level], ["c_Ts"]
+        "load_dependent_friction",
+        "motor",
+        score,
+        evidence,
+        sections,
+        [*owned_by("load_dependent_friction"), ctx.level],
+        [*owned_by("load_dependent_friction")],
     )
 
 
@@ -393,7 +421,7 @@ def screen_thermal(ctx: Context) -> Candidate | None:
     for tau in np.geomspace(ctx.duration_s / 30, 2 * ctx.duration_s, 12):
 
         def warming(s: Signals, r: Residual, tau: float = float(tau)) -> np.ndarray:
-            friction = np.where(s.stuck, 0.0, np.abs(r.rows[:, k.OUT_F_M]))
+            friction = np.where(s.stuck, 0.0, np.abs(r.rows[:, OUT.F_M]))
             return direction(s, r) * friction * (1 - np.exp(-s.t / tau))
 
         score, beta, level = ctx.level_regression(warming)
@@ -407,8 +435,8 @@ def screen_thermal(ctx: Context) -> Candidate | None:
         f" ~{tau:.2g} s ({_pct(score)} more explained than by the friction level alone, held out)"
     )
     sections = ctx.with_level({"thermal_drift": {"d_th": d_th, "tau_th": tau}}, level)
-    names = ["d_th", "tau_th", ctx.level]
-    return Candidate("thermal_drift", "motor", score, evidence, sections, names, ["d_th", "tau_th"])
+    names = [*owned_by("thermal_drift"), ctx.level]
+    return Candidate("thermal_drift", "motor", score, evidence, sections, names, [*owned_by("thermal_drift")])
 
 
 # --- the transmission and the output side (need the output angle) ------------------------------------
@@ -519,7 +547,8 @@ def screen_hysteresis(ctx: Context) -> Candidate | None:
         f" ({2 * t_h / k_s:.2g} rad wide) explains {_pct(score)} of the output-torque residual (held out)"
     )
     sections = {"hysteresis": {"T_h": t_h, "delta_h": 0.1 * t_h / k_s}}
-    return Candidate("hysteresis", "load", score, evidence, sections, ["T_h", "delta_h"], ["T_h", "delta_h"])
+    own = [*owned_by("hysteresis")]
+    return Candidate("hysteresis", "load", score, evidence, sections, own, own)
 
 
 def screen_load_side(ctx: Context) -> Candidate | None:

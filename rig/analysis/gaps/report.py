@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from model import kernel as k
 from model.params import HarmonicDriveModel
 from model.plant import Plant
+from model.registry import OUT
 from model.simulate import replay_rows
 from rig.analysis.gaps.locate import ANGLE_BINS, CHANNEL_UNITS, SPEED_EDGES, Where, locate
 from rig.analysis.gaps.residual import one_step_residual
@@ -90,7 +90,7 @@ def _window_plot(result: GapsResult, shooting: Shooting, path: Path) -> Path:
     ax.plot(w.run.t, w.theta_m, "k.", label="measured", markersize=4)
     for label, model in (("model given", first), ("model with the effects", result.model)):
         rows = replay_rows(Plant(model), w.run, shooting.signals[w.signals].mode, shooting.dt_s, w.clock_s)
-        ax.plot(w.run.t, rows[:, k.OUT_THETA_M], label=label)
+        ax.plot(w.run.t, rows[:, OUT.THETA_M], label=label)
     ax.set(xlabel="time [s]", ylabel="θ_m [rad]", title="the worst shooting window of the given model")
     ax.grid(True, alpha=0.3)
     ax.legend()

@@ -24,6 +24,7 @@ from numba import njit
 from model import kernel as k
 from model.params import HarmonicDriveModel
 from model.plant import MODES, Plant, kernel_vectors
+from model.registry import N_OUT, N_STATE, OUT, X
 from rig.analysis.gaps.signals import Signals
 
 """Kernel states the data do not show (bristles, hysteresis element), tracked along the data."""
@@ -49,26 +50,26 @@ def _one_step_pass(
 ) -> None:
     """Per sample: reset to the measured state, integrate one interval; rows, end speeds, internal states."""
     n = t.shape[0]
-    x = np.zeros(k.N_STATE)
-    buf = np.empty((1, k.N_OUT))
+    x = np.zeros(N_STATE)
+    buf = np.empty((1, N_OUT))
     load = np.empty(1)
     for i in range(n):
         h = t[i + 1] - t[i] if i < n - 1 else t[i] - t[i - 1]
         steps = max(1, math.ceil(h / dt_max - 1e-9))
-        x[k.X_THETA_M] = theta_m[i]
-        x[k.X_OMEGA_M] = omega_m[i]
+        x[X.THETA_M] = theta_m[i]
+        x[X.OMEGA_M] = omega_m[i]
         if load_known:
-            x[k.X_THETA_L] = theta_l[i]
-            x[k.X_OMEGA_L] = omega_l[i]
-        x[k.X_TIME] = t[i]
-        internal[i, 0] = x[k.X_Z_M]
-        internal[i, 1] = x[k.X_Z_L]
-        internal[i, 2] = x[k.X_Z_H]
+            x[X.THETA_L] = theta_l[i]
+            x[X.OMEGA_L] = omega_l[i]
+        x[X.TIME] = t[i]
+        internal[i, 0] = x[X.Z_M]
+        internal[i, 1] = x[X.Z_L]
+        internal[i, 2] = x[X.Z_H]
         load[0] = tau_ext[i]
         k.integrate(p, flags, x, mode, np.full(steps, drive[i]), load, h / steps, steps, buf)
         rows[i] = buf[0]
-        end[i, 0] = x[k.X_OMEGA_M]
-        end[i, 1] = x[k.X_OMEGA_L]
+        end[i, 0] = x[X.OMEGA_M]
+        end[i, 1] = x[X.OMEGA_L]
 
 
 def judged_model(model: HarmonicDriveModel, sig: Signals) -> HarmonicDriveModel:
@@ -102,7 +103,7 @@ def one_step_residual(model: HarmonicDriveModel, sig: Signals, dt_s: float) -> R
     judged = judged_model(model, sig)
     p, flags = kernel_vectors(judged)
     n = sig.n
-    rows = np.empty((n, k.N_OUT))
+    rows = np.empty((n, len(OUT)))
     end = np.empty((n, 2))
     internal = np.empty((n, 3))
     load_known = sig.has_load and not judged.rigid
@@ -139,12 +140,12 @@ def one_step_residual(model: HarmonicDriveModel, sig: Signals, dt_s: float) -> R
     load = load_position = deflection = None
     if load_known and sig.theta_l is not None and sig.omega_l is not None:
         load = mech.J_l * sig.smooth(sig.acceleration(sig.theta_l) - centred(end[:, 1], sig.omega_l))
-        torque_s = rows[:, k.OUT_T_S]
+        torque_s = rows[:, OUT.T_S]
     else:
         # Rigid: what the output needs, from its measured acceleration and the model's load friction.
-        torque_s = sig.tau_ext + rows[:, k.OUT_F_L] + mech.J_l * mech.r * sig.smooth(alpha_m)
+        torque_s = sig.tau_ext + rows[:, OUT.F_L] + mech.J_l * mech.r * sig.smooth(alpha_m)
         if sig.theta_l is not None:
-            load_position = sig.theta_l - rows[:, k.OUT_THETA_L]
+            load_position = sig.theta_l - rows[:, OUT.THETA_L]
     if sig.theta_l is not None:
         plant = Plant(judged)
         error = np.array([plant.kinematic_error(v) for v in sig.theta_m]) if judged.kinematic_error else 0.0

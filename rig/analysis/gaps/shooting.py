@@ -21,10 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from model import kernel as k
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from model.plant import Plant
+from model.registry import OUT
 from model.simulate import replay_rows
 from rig.analysis.fit.parameters import with_values
 from rig.analysis.fit.trajectory import ParameterEstimate, TrajectoryProblem, solve
@@ -67,9 +67,9 @@ class Shooting:
             rows = replay_rows(
                 plant, w.run, self.signals[w.signals].mode, self.dt_s, time_s=w.clock_s, hidden=hidden
             )
-            parts = [rows[:, k.OUT_THETA_M] - w.theta_m]
+            parts = [rows[:, OUT.THETA_M] - w.theta_m]
             if w.theta_l is not None:
-                parts.append((rows[:, k.OUT_THETA_L] - w.theta_l) / self.r)
+                parts.append((rows[:, OUT.THETA_L] - w.theta_l) / self.r)
             out.append(np.concatenate(parts))
         return out
 

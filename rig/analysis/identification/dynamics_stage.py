@@ -30,6 +30,7 @@ from scipy.stats import t as student_t
 from model import kernel as k
 from model.params import N_FOURIER, HarmonicDriveModel
 from model.plant import kernel_vectors
+from model.registry import FL
 from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.fit.trajectory import SPEED_BAND_SIGMAS, position_noise, window_robust_covariance
@@ -249,7 +250,7 @@ def spring_torque(model: HarmonicDriveModel, deflections: np.ndarray) -> np.ndar
     deflections of any shape [N·m]."""
     p, flags = kernel_vectors(model)
     flat = np.ascontiguousarray(deflections, dtype=np.float64).reshape(-1)
-    return np.asarray(_spring_torques(p, int(flags[k.FL_NONLINEAR]), flat)).reshape(np.shape(deflections))
+    return np.asarray(_spring_torques(p, int(flags[FL.NONLINEAR]), flat)).reshape(np.shape(deflections))
 
 
 @njit(cache=True)
@@ -267,7 +268,7 @@ def load_friction_steady(model: HarmonicDriveModel, omega_l: np.ndarray) -> np.n
         return np.zeros_like(omega_l)
     p, flags = kernel_vectors(model)
     flat = np.ascontiguousarray(omega_l).reshape(-1)
-    levels = _load_moving_levels(p, int(flags[k.FL_LOAD_LAW]), flat).reshape(omega_l.shape)
+    levels = _load_moving_levels(p, int(flags[FL.LOAD_LAW]), flat).reshape(omega_l.shape)
     return np.asarray(np.sign(omega_l) * levels + model.load_friction.b_l * omega_l)
 
 

@@ -19,6 +19,7 @@ from model import kernel as k
 from model.errors import UserInputError
 from model.params import N_FOURIER, HarmonicDriveModel
 from model.plant import Plant
+from model.registry import FOURIER_NAMES
 from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.identification.dynamics_stage import (
@@ -44,8 +45,6 @@ MIN_STUCK_S = 0.02
 """Shortest span of an unchanged motor encoder reading that counts as stuck [s]."""
 BRACKET_MAX = 0.02
 """A breakaway counts when ψ rose by at most this share of its level in the cycle it broke away."""
-
-FOURIER_NAMES = [f"a{n}" for n in range(1, N_FOURIER + 1)] + [f"b{n}" for n in range(1, N_FOURIER + 1)]
 
 
 def without_position_part(model: HarmonicDriveModel) -> HarmonicDriveModel:

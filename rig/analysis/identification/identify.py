@@ -16,6 +16,7 @@ import numpy as np
 
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel, save_model
+from model.registry import JOINT_CANDIDATES
 from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.fit.trajectory import CHANNELS, TrajectoryFit, TrajectoryProblem, fit_problem
@@ -25,12 +26,6 @@ from rig.analysis.identification.validation import ValidationReport, validate
 from rig.experiments.base import segments_of
 from rig.experiments.pulse import STAIR_PREFIX
 
-JOINT_CANDIDATES = ("s3", "k_v", "static_factor", "K_s", "J_m", "J_l", "f_cl", "b_l")
-"""Parameters the joint refinement may move (when the staged fit found them determined): those that
-shape trajectories most. The Fourier and quadratic coefficients keep their staged values, which come
-from data made for them; so do R and K_b: the motor stage's u = R·i_a + K_b·(ω + δ·dω/dt) is exact
-sample by sample and unbiased over 20 noise seeds (σ 0.04 %), where the trajectories, free to move
-them, pulled K_b by +0.08 % (1.6σ) on average, a bias of their own replay."""
 JOINT_EXPERIMENTS = ("pulse", "step", "sine")
 """Runs whose trajectories the joint refinement matches: open-loop transients and closed-loop tracking."""
 JOINT_WINDOW_S = 0.1
