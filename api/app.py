@@ -78,7 +78,6 @@ KEEP_ALIVE_S = 10.0  # a comment line this often keeps proxies and browsers from
 STOP_LANE_THREADS = 2  # the stop's own threads: its key check and answer never queue behind others
 SEAL_WAIT_S = 2.0  # going away: how long the stopped run may take to be sealed before streams end
 CLOSE_WAIT_S = 1.0  # then how long the lifespan waits for each worker's thread (the process exits regardless)
-REPORT_DIR = "report"
 QUEUE_MAX = 20  # jobs waiting for the rig: a working day of campaigns; more is a client gone wrong
 AUDIT_PAGE_MAX = 1000  # audit lines in one answer
 AUDIT_DETAIL_MAX = 2000  # characters of a start request kept in its audit line
@@ -340,14 +339,7 @@ def start_run(
         plan = operations.plan_of(body.model_copy(update={"params": params}), worker.rig)
     except UserInputError as exc:
         raise _named(exc, body) from None
-    waiting = sum(job.status == JobStatus.QUEUED for job in worker.jobs())
-    if body.queue and waiting >= QUEUE_MAX:
-        raise ProblemError(
-            429,
-            f"the queue holds {waiting} jobs already (at most {QUEUE_MAX}); try again when one has ended",
-            headers={"Retry-After": str(problems.RETRY_AFTER_S)},
-        )
-    job = worker.submit(plan, owner=who.name, queue=body.queue)
+    job = worker.submit(plan, owner=who.name, queue=body.queue, queue_max=QUEUE_MAX)
     started = json.dumps({"experiment": body.experiment, "params": body.params})
     _audit(request, who, "start", job.id, problems.excerpt(started, AUDIT_DETAIL_MAX))
     if job.kind == JobKind.RUN:
@@ -408,12 +400,7 @@ def run(run_id: RunId, request: Request, who: Viewer) -> RunDocument:
 
 @_route("abort_run", response_model=RunDocument)
 def abort_run(run_id: RunId, request: Request, who: Operator) -> RunDocument:
-    worker = _worker(request)
-    job = next((j for j in worker.jobs() if run_id in j.runs and not j.status.finished), None)
-    if job is None:
-        document = _run(request, run_id)  # 404 when unknown
-        raise ProblemError(409, f"run {run_id} is {document.status}: nothing to abort")
-    worker.abort(job.id)
+    _worker(request).abort_run(run_id)
     _audit(request, who, "abort", run_id)
     return _run(request, run_id)
 
@@ -573,20 +560,11 @@ def _start_analysis(
 ) -> JobDocument:
     store = _store(request)
     model = model_ref(store, body.model, "body.model")  # a name: presets and uploaded models only
-    for ref in body.data:
-        if ref != "latest":
-            store.get(ref)  # 404 naming the unknown run; files on the server are not the service's to read
-    operation = operations.operation(kind)
-    data = list(body.data)
-
-    def work(progress: Any, job_id: str) -> Any:
-        report = actions.analysis_folder(store, job_id) / REPORT_DIR
-        return operation.call(data, model, store, report_dir=report, progress=progress, analysis_id=job_id)
-
-    job = _analysis(request).submit(kind, body.model_dump(mode="json"), work, owner=who.name)
+    job = operations.start_analysis(_analysis(request), store, kind, body, model, owner=who.name)
     _audit(request, who, str(kind), job.id, json.dumps(body.model_dump(mode="json")))
-    assert operation.rest is not None
-    _accepted(response, f"{API}{operation.rest[1]}/{job.id}")
+    route = operations.operation(kind).rest
+    assert route is not None
+    _accepted(response, f"{API}{route[1]}/{job.id}")
     return job.document()
 
 

@@ -14,8 +14,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from model.errors import UserInputError
 from model.run import RunFormatError
-from rig.core.actions import NameTakenError, UnknownJobError
-from rig.core.worker import RigBusyError, WorkerClosedError
+from rig.core.actions import ConflictError, UnknownJobError
+from rig.core.worker import QueueFullError, RigBusyError, WorkerClosedError
 from rig.store.runs import UnknownRunError
 
 log = logging.getLogger(__name__)
@@ -115,8 +115,10 @@ def status_of(exc: UserInputError) -> tuple[int, dict[str, str] | None]:
     """The HTTP status of an error a user caused."""
     if isinstance(exc, UnknownRunError | UnknownJobError):
         return 404, None
-    if isinstance(exc, NameTakenError):
+    if isinstance(exc, ConflictError):
         return 409, None
+    if isinstance(exc, QueueFullError):
+        return 429, {"Retry-After": str(RETRY_AFTER_S)}
     if isinstance(exc, RigBusyError):
         return 409, {"Retry-After": str(RETRY_AFTER_S)}
     if isinstance(exc, WorkerClosedError):

@@ -20,7 +20,7 @@ from api.client import POLL_S, HdrigClient, ServiceError, ServiceInputError
 from model.errors import UserInputError
 from model.run import Run
 from rig.core import documents as doc
-from rig.core.actions import MODEL_FILE
+from rig.core.actions import MODEL_FILE, REPORT_DIR
 from rig.core.operations import AnalysisOrder, AnalysisRequest, RunRequest
 from rig.faults import DeviceFaultError
 from rig.lab import Landed
@@ -29,7 +29,6 @@ from rig.store.runfile import read_parquet
 from rig.store.runs import RunQuery, export_path
 
 Progress = Callable[[str, float], None]  # rig.runner.Progress: (phase, fraction done)
-REPORT_FOLDER = "report"  # where the service writes an analysis' report inside its folder (api.app)
 INTERNAL_ERROR = "internal error"
 
 
@@ -171,11 +170,11 @@ class RemoteLab:
         """Download the analysis' report into `report_dir`; the local paths of the files `named` (the
         service's paths, as its document names them)."""
         target = Path(report_dir)
-        prefix = f"{REPORT_FOLDER}/"
+        prefix = f"{REPORT_DIR}/"
         for name in self.client.files(kind, job_id):
             if name.startswith(prefix):
                 self.client.download_file(kind, job_id, name, target / name.removeprefix(prefix))
-        return [target / _after(path, f"/{REPORT_FOLDER}/") for path in named]
+        return [target / _after(path, f"/{REPORT_DIR}/") for path in named]
 
 
 def _nan_for_null(document: Any, *names: str) -> dict[str, Any]:

@@ -76,6 +76,7 @@ logger = logging.getLogger(__name__)
 ANALYSES_DIR = "analyses"
 RESULT_FILE = "result.json"
 MODEL_FILE = "model.yaml"
+REPORT_DIR = "report"  # the service's analyses write their report here, inside their folder
 JOB_FILE = "job.json"  # an analysis' job record: id, kind, created
 
 
@@ -127,10 +128,10 @@ def list_kept_models(store: RunStore) -> list[ModelSummary]:
 
 def keep_model(store: RunStore, name: str, content: dict[str, Any], where: str) -> dict[str, Any]:
     """Keep a model file's `content` in the store under `name` (`POST /api/v1/models`); the model as kept.
-    A name in use is a NameTakenError; a bad model a FieldInputError naming `model` (`where` is how the
+    A name in use is a ConflictError; a bad model a FieldInputError naming `model` (`where` is how the
     message names the content)."""
     if kept_model(store, name) is not None:
-        raise NameTakenError(f"model name {name!r} is taken (GET /api/v1/models lists them)")
+        raise ConflictError(f"model name {name!r} is taken (GET /api/v1/models lists them)")
     try:
         parsed = parse_model(content, where)
     except UserInputError as exc:
@@ -138,7 +139,7 @@ def keep_model(store: RunStore, name: str, content: dict[str, Any], where: str) 
     try:
         store.keep_model(name, yaml.safe_dump(parsed.to_dict(), sort_keys=False))
     except UserInputError as exc:  # taken meanwhile by another upload
-        raise NameTakenError(str(exc)) from None
+        raise ConflictError(str(exc)) from None
     return parsed.to_dict()
 
 
@@ -437,8 +438,8 @@ class UnknownJobError(UserInputError):
     """No job with this id (HTTP 404)."""
 
 
-class NameTakenError(UserInputError):
-    """A name already in use (HTTP 409)."""
+class ConflictError(UserInputError):
+    """The request conflicts with the present state: a name in use, a run that has ended (HTTP 409)."""
 
 
 class FieldInputError(UserInputError):

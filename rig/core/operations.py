@@ -36,8 +36,9 @@ from rig.core.documents import (
     RunPlan,
     TrendDocument,
 )
-from rig.core.worker import AnalysisWorker, RigWorker
+from rig.core.worker import AnalysisWorker, Job, RigWorker
 from rig.interface import Rig
+from rig.runner import Progress
 from rig.store.runs import MODEL_NAME_PATTERN, RunQuery, RunStore
 
 # ---- request models ---------------------------------------------------------------------------------
@@ -138,6 +139,30 @@ def plan_of(request: RunRequest, rig: Rig | None = None) -> RunPlan:
         tags=request.tags,
         rig=rig,
     )
+
+
+def start_analysis(
+    worker: AnalysisWorker,
+    store: RunStore,
+    kind: JobKind,
+    request: AnalysisRequest,
+    model: str,
+    owner: str | None = None,
+) -> Job:
+    """A fit or gap analysis of runs of `store` started on `worker` (the service's), `model` as the core
+    loads it (`actions.kept_model`); its report goes into the analysis' folder (`actions.REPORT_DIR`).
+    Every run is looked up first (UnknownRunError naming it): the service reads only its own store."""
+    for ref in request.data:
+        if ref != "latest":
+            store.get(ref)
+    call = operation(str(kind)).call
+    data = list(request.data)
+
+    def work(progress: Progress, job_id: str) -> Any:
+        report = actions.analysis_folder(store, job_id) / actions.REPORT_DIR
+        return call(data, model, store, report_dir=report, progress=progress, analysis_id=job_id)
+
+    return worker.submit(kind, request.model_dump(mode="json"), work, owner=owner)
 
 
 # ---- the table ----------------------------------------------------------------------------------------

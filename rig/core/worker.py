@@ -26,7 +26,14 @@ import numpy as np
 
 from model.errors import UserInputError
 from rig.config import RigConfig
-from rig.core.actions import UnknownJobError, execute_plan, list_runs, reserve_run_id, run_document
+from rig.core.actions import (
+    ConflictError,
+    UnknownJobError,
+    execute_plan,
+    list_runs,
+    reserve_run_id,
+    run_document,
+)
 from rig.core.documents import JobDocument, JobKind, JobStatus, Progress, RunDocument, RunPage, RunPlan
 from rig.core.events import Event, EventKind, EventLog
 from rig.faults import DeviceFaultError
@@ -66,6 +73,10 @@ class IllegalTransitionError(RuntimeError):
 
 class RigBusyError(UserInputError):
     """The rig is playing a job and the request did not ask to queue (HTTP 409)."""
+
+
+class QueueFullError(UserInputError):
+    """The queue holds as many jobs as it may (HTTP 429: ask again when one has ended)."""
 
 
 class WorkerClosedError(UserInputError):
@@ -323,9 +334,16 @@ class RigWorker(_JobThread):
 
     # ---- what callers do ----------------------------------------------------------------------------
 
-    def submit(self, plan: RunPlan, owner: str | None = None, queue: bool = False) -> Job:
+    def submit(
+        self, plan: RunPlan, owner: str | None = None, queue: bool = False, queue_max: int | None = None
+    ) -> Job:
         """Accept a validated plan. The job's id is its first run's id; it starts when the rig is free
-        (`queue=True`) or now (else RigBusyError)."""
+        (`queue=True`: QueueFullError when `queue_max` jobs wait already) or now (else RigBusyError)."""
+        waiting = sum(job.status == JobStatus.QUEUED for job in self.jobs())
+        if queue and queue_max is not None and waiting >= queue_max:
+            raise QueueFullError(
+                f"the queue holds {waiting} jobs already (at most {queue_max}); try again when one has ended"
+            )
         first = reserve_run_id(plan)
         kind = JobKind.CAMPAIGN if len(plan.runs) > 1 else JobKind.RUN
         job_id = first if kind == JobKind.RUN else new_run_id("campaign")
@@ -346,6 +364,14 @@ class RigWorker(_JobThread):
         if kind == JobKind.RUN:
             job.runs.append(first)  # named before it starts, so GET /runs/{id} finds it queued
         return self._enqueue(job, queue)
+
+    def abort_run(self, run_id: str) -> Job:
+        """Stop the job that plays (or waits to play) this run; ConflictError when it has ended."""
+        job = next((j for j in self.jobs() if run_id in j.runs and not j.status.finished), None)
+        if job is None:
+            document = self.run_document(run_id)  # UnknownRunError when unknown
+            raise ConflictError(f"run {run_id} is {document.status}: nothing to abort")
+        return self.abort(job.id)
 
     def abort(self, job_id: str) -> Job:
         """Stop one job: a queued job leaves the queue; a running one quick-stops the rig (data kept)."""
