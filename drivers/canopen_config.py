@@ -121,6 +121,13 @@ class CanopenSettings(BusSettings):
         default=None, gt=0, description="wait for the TPDOs answering a SYNC; default: 10 cycles, ≥ 20 ms"
     )
     sdo_timeout_s: float = Field(default=0.5, gt=0, description="SDO response timeout [s]")
+    bus_load_max: float = Field(
+        default=0.9,
+        gt=0,
+        le=1,
+        description="share of the bit rate the cyclic frames (SYNC, RPDOs, TPDOs) may take, counted at"
+        " worst-case bit stuffing; the rest carries heartbeats, EMCYs and SDOs [–]",
+    )
     boot_timeout_s: float = Field(default=5.0, gt=0, description="wait for the boot-up message [s]")
     reset_on_boot: bool = Field(default=True, description="send NMT reset node at boot")
     pace: bool = Field(default=True, description="hold the SYNC period in cycle(); off: SYNC on demand")
@@ -726,6 +733,53 @@ class SdoWrite:
 
     def __str__(self) -> str:
         return f"0x{self.index:04X}:{self.subindex:02X} = {self.value} ({self.why})"
+
+
+def frame_bits(data_bytes: int) -> int:
+    """Bits on the wire of a CAN 2.0A data frame of `data_bytes` bytes, at worst: 47 of frame and
+    interframe space, 8 a byte, and the stuff bits its 34 + 8n stuffed bits can need (one every 4)."""
+    return 47 + 8 * data_bytes + (34 + 8 * data_bytes - 1) // 4
+
+
+@dataclass(frozen=True)
+class BusLoad:
+    """What the cyclic frames of one control cycle take of the bus."""
+
+    bits_per_cycle: int
+    period_s: float
+    bitrate: int
+
+    @property
+    def share(self) -> float:
+        """Of the bit rate [–]."""
+        return self.bits_per_cycle / self.period_s / self.bitrate
+
+    def __str__(self) -> str:
+        return (
+            f"bus load {self.share:.0%} ({self.bits_per_cycle} bits a cycle at {1 / self.period_s:g} Hz,"
+            f" {self.bitrate / 1000:g} kbit/s)"
+        )
+
+
+def bus_load(plans: Sequence[PdoPlan], period_s: float, bitrate: int) -> BusLoad:
+    """The bus load of one SYNC (no data) and each node's RPDO and TPDOs every cycle, at worst-case bit
+    stuffing. Heartbeats, guarding and SDOs (a few frames a second) are left to the margin the limit keeps.
+    """
+    bits = frame_bits(0)
+    for plan in plans:
+        bits += sum(
+            frame_bits(layout.length) for layout in (plan.rpdo, plan.tpdo1, plan.tpdo2) if layout.entries
+        )
+    return BusLoad(bits, period_s, bitrate)
+
+
+def check_bus_load(load: BusLoad, limit: float, where: str) -> None:
+    """One line when the cyclic frames would take more of the bus than `limit` (canopen.bus_load_max)."""
+    if load.share > limit:
+        raise CanopenConfigError(
+            f"{where}: {load} is above canopen.bus_load_max = {limit:.0%}: lower the rig's sample_rate_hz,"
+            " raise canopen.bitrate or drive fewer nodes on this bus"
+        )
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from drivers.can_bus import PeriodicFrame, RecordedNetwork, open_bus
 from drivers.canopen_config import (
+    BusLoad,
     CanopenSettings,
     DriveLimits,
     PdoPlan,
@@ -40,6 +41,8 @@ from drivers.canopen_config import (
     SdoWrite,
     Watchdog,
     boot_plan,
+    bus_load,
+    check_bus_load,
     check_plan,
     declared_range,
     guarding,
@@ -147,6 +150,7 @@ class CanopenServo:
         self.modes: DriveModes | None = None
         """What the drive offers, read at boot."""
         self.choice: ModeChoice | None = None
+        self.bus_load: BusLoad | None = None  # of the mode configured last
         self.mode: OperationMode | None = None
         self.watchdog: Watchdog = host_watchdog(self.od)
         """How the drive notices this host is gone: heartbeat consumer, node guarding, or none."""
@@ -283,6 +287,9 @@ class CanopenServo:
         self._write(mode_plan(self.od, self.settings.node_id, op_mode, offset))
         tpdo1, tpdo2 = self._tpdo
         self._plan = PdoPlan(rpdo_layout(self.od, op_mode, offset), tpdo1, tpdo2, self.settings.node_id)
+        self.bus_load = bus_load([self._plan], self.period_s, self.settings.bitrate)
+        check_bus_load(self.bus_load, self.settings.bus_load_max, f"node {node.id}")
+        logger.info("node %d: %s", node.id, self.bus_load)
         self._target_range = declared_range(od_variable(self.od, *TARGET_OBJECT[op_mode]))
         self._offset_range = declared_range(od_variable(self.od, *TORQUE_OFFSET)) if offset else (0, 0)
         self.mode, self.choice = op_mode, choice
