@@ -18,6 +18,7 @@ naming the URL.
 from __future__ import annotations
 
 import json
+import re
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -151,27 +152,27 @@ class HdrigClient:
 
     def rig(self) -> dict[str, Any]:
         """The rig: name, backend, mode (sim/hardware), state, health, limits, the current run."""
-        return self._object("GET", "/rig")
+        return self._object("GET", _path("rig_status"))
 
     def experiments(self) -> list[ExperimentInfo]:
-        return [ExperimentInfo.model_validate(e) for e in self._get("/experiments")]
+        return [ExperimentInfo.model_validate(e) for e in self._get(_path("list_experiments"))]
 
     def models(self) -> list[ModelSummary]:
-        return [ModelSummary.model_validate(m) for m in self._get("/models")]
+        return [ModelSummary.model_validate(m) for m in self._get(_path("list_models"))]
 
     def model(self, name: str) -> dict[str, Any]:
         """A preset as a model file's content (`hdrig model show NAME --json`)."""
-        return self._object("GET", f"/models/{name}")
+        return self._object("GET", _path("show_model", name=name))
 
     def stop(self) -> dict[str, Any]:
         """Stop everything now (the rig quick-stops, the queue is cancelled); always accepted."""
-        return self._object("POST", "/rig/stop")
+        return self._object("POST", _path("stop"))
 
     # ---- runs ---------------------------------------------------------------------------------------
 
     def reset(self) -> dict[str, Any]:
         """Leave the faulted state (operator)."""
-        return self._object("POST", "/rig/reset")
+        return self._object("POST", _path("reset"))
 
     # ---- runs ---------------------------------------------------------------------------------------
 
@@ -241,11 +242,11 @@ class HdrigClient:
         return self.newest_runs(query, limit, **filters).runs
 
     def run(self, run_id: str) -> RunDocument:
-        return RunDocument.model_validate(self._get(f"/runs/{run_id}"))
+        return RunDocument.model_validate(self._get(_path("show_run", run_id=run_id)))
 
     def abort(self, run_id: str) -> RunDocument:
         """Stop this run: the rig quick-stops; the data so far are kept and the run ends `aborted`."""
-        return RunDocument.model_validate(self._post(f"/runs/{run_id}/abort"))
+        return RunDocument.model_validate(self._post(_path("abort_run", run_id=run_id)))
 
     def events(self, run_id: str, last_event_id: int | None = None) -> Iterator[ServerEvent]:
         """The run's Server-Sent Events after `last_event_id`, until its final `run` event."""
@@ -253,7 +254,7 @@ class HdrigClient:
         timeout = httpx.Timeout(TIMEOUT_S, read=STREAM_READ_S)
         try:
             with self._http.stream(
-                "GET", f"{API}/runs/{run_id}/events", headers=headers, timeout=timeout
+                "GET", f"{API}{_path('run_events', run_id=run_id)}", headers=headers, timeout=timeout
             ) as response:
                 _raise_for(response)
                 yield from _parse_sse(response.iter_lines())
@@ -304,7 +305,9 @@ class HdrigClient:
         path = Path(out) if out is not None else Path.cwd()
         if path.is_dir():
             path = path / f"{run_id}.{format}"
-        self._save(f"/runs/{run_id}/data", path, {k: v for k, v in params.items() if v is not None})
+        self._save(
+            _path("export_run", run_id=run_id), path, {k: v for k, v in params.items() if v is not None}
+        )
         return path
 
     def _save(self, route: str, path: Path, params: dict[str, Any] | None = None) -> None:
@@ -323,12 +326,12 @@ class HdrigClient:
 
     def artifacts(self, run_id: str) -> list[str]:
         """The run's artifacts (tables, results.json, plots), relative to its artifacts folder."""
-        files: list[str] = self._get(f"/runs/{run_id}/artifacts")["files"]
+        files: list[str] = self._get(_path("run_artifacts", run_id=run_id))["files"]
         return files
 
     def download_artifact(self, run_id: str, name: str, out: str | Path) -> Path:
         path = Path(out)
-        self._save(f"/runs/{run_id}/artifacts/{name}", path)
+        self._save(_path("run_artifact", run_id=run_id, path=name), path)
         return path
 
     # ---- jobs: fits and gap analyses ----------------------------------------------------------------
@@ -354,10 +357,10 @@ class HdrigClient:
 
     def jobs(self) -> list[JobDocument]:
         """Every job of this service's life: runs, campaigns, fits, gap analyses."""
-        return [JobDocument.model_validate(j) for j in self._get("/jobs")]
+        return [JobDocument.model_validate(j) for j in self._get(_path("list_jobs"))]
 
     def job(self, job_id: str) -> JobDocument:
-        return JobDocument.model_validate(self._get(f"/jobs/{job_id}"))
+        return JobDocument.model_validate(self._get(_path("show_job", job_id=job_id)))
 
     def wait_job(self, job_id: str, timeout_s: float | None = None) -> JobDocument:
         """Poll a job until it has ended (TimeoutError after `timeout_s`)."""
@@ -368,20 +371,24 @@ class HdrigClient:
 
     def files(self, kind: Literal["fits", "gaps"], job_id: str) -> list[str]:
         """A fit's or gap analysis' files (result.json, model.yaml, report/...), relative to its folder."""
-        files: list[str] = self._get(f"/{kind}/{job_id}/files")["files"]
+        files: list[str] = self._get(_path(f"{_job_kind(kind)}_files", job_id=job_id))["files"]
         return files
 
     def download_file(self, kind: Literal["fits", "gaps"], job_id: str, name: str, out: str | Path) -> Path:
         path = Path(out)
-        self._save(f"/{kind}/{job_id}/files/{name}", path)
+        self._save(_path(f"{_job_kind(kind)}_file", job_id=job_id, path=name), path)
         return path
 
 
-def _path(name: str) -> str:
-    """The route of the operation `name` under /api/v1, from the action table."""
+def _path(name: str, /, **params: str) -> str:
+    """The route of the operation `name` under /api/v1, from the action table, its `{...}` filled in."""
     route = operation(name).rest
     assert route is not None, f"operation {name} has no route"
-    return route[1]
+    return re.sub(r"\{(\w+)(?::path)?\}", lambda found: params[found.group(1)], route[1])
+
+
+def _job_kind(folder: Literal["fits", "gaps"]) -> JobKind:
+    return JobKind.FIT if folder == "fits" else JobKind.GAPS
 
 
 def _sleep_before(deadline: float | None, what: str) -> None:
