@@ -405,5 +405,20 @@ def test_an_analysis_from_before_the_service_is_found_by_its_recorded_kind_not_i
     assert job.json()["result"] == {"verdict": "no gap"}
     assert "job.json" in service.get(f"{API}/gaps/{folder.name}/files").json()["files"]
     assert_problem(service.get(f"{API}/fits/{folder.name}"), 404)
-    (folder / actions.JOB_FILE).unlink()  # no record: not an analysis this store knows
+    (folder / actions.JOB_FILE).unlink()  # no record, and a result that is neither a fit nor gaps
+    assert_problem(service.get(f"{API}/gaps/{folder.name}"), 404)
+
+
+def test_an_analysis_from_before_job_records_is_found_by_what_its_result_holds(service: Service) -> None:
+    """Analyses a store kept before their folders had a job record (`job.json`) stay reachable: the kind is
+    read from the result's own fields (a fit's parameters and fit error, a gap analysis' steps), never
+    from the id; this fit is named like a gap analysis."""
+    store = service.store
+    folder = actions._analysis_folder(store, JobKind.FIT, "20250101-000000-gaps-abcd")
+    (folder / actions.JOB_FILE).unlink()
+    fit = {"parameters": {"s3": {"value": 0.07}}, "fit_error": {"before": 1.0, "after": 0.5}}
+    (folder / actions.RESULT_FILE).write_text(json.dumps(fit))
+    job = service.get(f"{API}/fits/{folder.name}")
+    assert job.status_code == 200, job.text
+    assert job.json()["kind"] == "fit" and job.json()["result"] == fit
     assert_problem(service.get(f"{API}/gaps/{folder.name}"), 404)

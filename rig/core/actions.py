@@ -498,20 +498,31 @@ def finished_analysis(store: RunStore, job_id: str, kind: JobKind) -> JobDocumen
     job record and result), or None."""
     folder = analysis_folder(store, job_id)
     record, result = folder / JOB_FILE, folder / RESULT_FILE
-    if not (record.is_file() and result.is_file()):
+    if not result.is_file():
         return None
-    job = json.loads(record.read_text())
-    if job.get("kind") != kind:
+    body = json.loads(result.read_text())
+    if record.is_file():
+        job = json.loads(record.read_text())
+        recorded, created = job.get("kind"), datetime.fromisoformat(job["created"])
+    else:  # made before analyses kept a job record: what its result holds says what it is
+        recorded, created = _kind_of_result(body), datetime.fromtimestamp(folder.stat().st_mtime, UTC)
+    if recorded != kind:
         return None
     ended = datetime.fromtimestamp(result.stat().st_mtime, UTC)
     return JobDocument(
-        id=job_id,
-        kind=kind,
-        status=JobStatus.COMPLETE,
-        created=datetime.fromisoformat(job["created"]),
-        ended=ended,
-        result=json.loads(result.read_text()),
+        id=job_id, kind=kind, status=JobStatus.COMPLETE, created=created, ended=ended, result=body
     )
+
+
+def _kind_of_result(body: Any) -> JobKind | None:
+    """A fit's or a gap analysis' result by the fields its document always has; None for neither."""
+    if not isinstance(body, dict):
+        return None
+    if {"parameters", "fit_error"} <= body.keys():
+        return JobKind.FIT
+    if {"steps", "initial_gap", "final_gap"} <= body.keys():
+        return JobKind.GAPS
+    return None
 
 
 def _runs_for(data: Sequence[str], store: RunStore, mapping: Sequence[str] | None = None) -> list[Run]:
