@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import os
 import uuid
+from typing import Any
+
+import numpy as np
 
 from drivers.can_bus import BusSettings, CanBusError
 
@@ -30,3 +33,16 @@ def bus_settings_for_test(name: str) -> BusSettings:
     if not sep or not interface or not channel:
         raise CanBusError(f"{TEST_BUS_ENV}={spec!r}: expected interface:channel, e.g. socketcan:vcan0")
     return BusSettings(interface=interface, channel=channel)
+
+
+def held_speed_errors(run: Any, speeds: set[float], abs_tol_rad_s: float) -> list[str]:
+    """The constant-speed segments of a recorded speed sweep whose second half's mean motor speed is not
+    within `abs_tol_rad_s` of its set-point (or whose set-point is not one of `speeds`), one line each."""
+    errors = []
+    for segment in run.meta["segments"]:
+        held = slice(segment["start"] + segment["cycles"] // 2, segment["start"] + segment["cycles"])
+        speed = float(np.mean(run["setpoint"][held]))
+        measured = float(np.mean(run["omega_m"][held]))
+        if abs(speed) not in speeds or abs(measured - speed) > abs_tol_rad_s:
+            errors.append(f"{segment['label']}: set {speed:g}, held {measured:.3f} rad/s")
+    return errors
