@@ -22,6 +22,7 @@ import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -131,6 +132,18 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     rig_file.write_text(yaml.safe_dump(rig))
     env = {**os.environ, "HDRIG_HOME": str(tmp_path / "home")}
 
+    key = operator_key(env)
+    recording = [_record(env), _record(env, "speeds_rad_s=[1,10,100]", "hold_s=0.3")]  # side by side
+    recording += [_record(env, experiment="step"), _record(env, "periods=2", experiment="chirp")]
+    step, chirp = [_recorded(process) for process in recording[2:]]
+    sweeps = [_recorded(process) for process in recording[:2]]
+
+    with serving(env, rig_file, tmp_path) as (url, process, log):
+        yield Service(url, key, process, log, sweeps, {"step": step, "chirp": chirp})
+
+
+def operator_key(env: dict[str, str]) -> str:
+    """An operator key made by `hdrig keys create` in the store `env` names."""
     made = subprocess.run(
         [str(HDRIG), "keys", "create", "--role", "operator", "--name", "browser"],
         env=env,
@@ -141,11 +154,15 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     assert made.returncode == 0, made.stderr
     key = made.stdout.strip()
     assert key, "hdrig keys create printed no key"
-    recording = [_record(env), _record(env, "speeds_rad_s=[1,10,100]", "hold_s=0.3")]  # side by side
-    recording += [_record(env, experiment="step"), _record(env, "periods=2", experiment="chirp")]
-    step, chirp = [_recorded(process) for process in recording[2:]]
-    sweeps = [_recorded(process) for process in recording[:2]]
+    return key
 
+
+@contextmanager
+def serving(
+    env: dict[str, str], rig_file: Path, tmp_path: Path
+) -> Iterator[tuple[str, subprocess.Popen[bytes], Path]]:
+    """`hdrig serve` on a free loopback port, healthy: (its URL, its process, its log); ended on exit
+    (TERM, then KILL) if it has not ended by itself."""
     port = _free_port()
     log = tmp_path / "serve.log"
     with log.open("wb") as out:
@@ -158,14 +175,15 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     url = f"http://127.0.0.1:{port}"
     try:
         _wait_healthy(url, process, log)
-        yield Service(url, key, process, log, sweeps, {"step": step, "chirp": chirp})
+        yield url, process, log
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(timeout=5)
+        if process.poll() is None:
+            process.terminate()
+            try:
+                process.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(timeout=5)
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,17 +17,16 @@ from typing import Any
 
 import pytest
 from test_browser import (  # the same Chromium, launch flags, checks and screenshot folder
-    HDRIG,
     ROOT,
     Service,
     _axe,
-    _free_port,
     _login,
     _no_horizontal_scroll,
     _shot,
     _stop_on_screen_and_uncovered,
-    _wait_healthy,
     browser,
+    operator_key,
+    serving,
 )
 
 __all__ = ["browser"]  # the fixture, used by name below
@@ -43,31 +41,9 @@ GREY = "rgb(89, 89, 89)"  # --grey in style.css: health unknown
 @pytest.fixture
 def service(tmp_path: Path) -> Iterator[Service]:
     env = {**os.environ, "HDRIG_HOME": str(tmp_path / "home")}
-    made = subprocess.run(
-        [str(HDRIG), "keys", "create", "--role", "operator", "--name", "browser"],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    assert made.returncode == 0, made.stderr
-    port = _free_port()
-    log = tmp_path / "serve.log"
-    with log.open("wb") as out:
-        process = subprocess.Popen(
-            [str(HDRIG), "serve", "--rig", str(LIVE_RIG), "--port", str(port)],
-            env=env,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-        )
-    url = f"http://127.0.0.1:{port}"
-    try:
-        _wait_healthy(url, process, log)
-        yield Service(url, made.stdout.strip(), process, log, [])
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(timeout=15)
+    key = operator_key(env)
+    with serving(env, LIVE_RIG, tmp_path) as (url, process, log):
+        yield Service(url, key, process, log, [])
 
 
 def _unknown_health(page: Any, text: str) -> None:
