@@ -18,7 +18,12 @@ from model.params import N_FOURIER, HarmonicDriveModel
 from model.registry import EFFECT_FLAGS, FL, LAW_CODES, OUT, PARAMETERS, Law, Mode, P, X
 
 InputMode = Literal["voltage", "current", "torque"]
-MODES: dict[str, int] = {"voltage": Mode.VOLTAGE, "current": Mode.CURRENT, "torque": Mode.TORQUE}
+MODES: dict[str, int] = {
+    "voltage": int(Mode.VOLTAGE),
+    "current": int(Mode.CURRENT),
+    "torque": int(Mode.TORQUE),
+}
+"""The kernel's mode codes, as plain ints: numba types an enum argument slowly at each call."""
 INPUT_COLUMN: dict[str, str] = {"voltage": "u", "current": "i_cmd", "torque": "tau_m"}
 MODE_OF_COLUMN: dict[str, InputMode] = {"u": "voltage", "i_cmd": "current", "tau_m": "torque"}
 
