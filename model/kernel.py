@@ -36,7 +36,7 @@ from numba import njit
 from model.inputs import Kind, Q  # the profile vector's layout, evaluated by profile_value
 from model.registry import FL, OUT, Law, Mode, P, X
 
-Structure = tuple[int, int, int, int, int, int, int, int, int, int]
+Structure = tuple[int, int, int, int, int, int, int, int, int, int, int]
 """The flags as a tuple, indexed by `FL` (read `s[FL.RIGID.value]`: numba cannot index a tuple by an
 `IntEnum` member itself): what the loop branches on."""
 
@@ -50,7 +50,8 @@ def _sign(x: float) -> float:
 def structure_of(flags: np.ndarray) -> Structure:
     """The flags vector as the loop's `Structure` tuple (a tuple holds no reference to count per step)."""
     return (
-        flags[0], flags[1], flags[2], flags[3], flags[4], flags[5], flags[6], flags[7], flags[8], flags[9]
+        flags[0], flags[1], flags[2], flags[3], flags[4], flags[5], flags[6], flags[7], flags[8], flags[9],
+        flags[10],
     )  # fmt: skip
 
 
@@ -468,6 +469,7 @@ def _advance(
     nonlinear = s[FL.NONLINEAR.value]
     hysteresis = s[FL.HYSTERESIS.value]
     kinematic = s[FL.KINEMATIC.value]
+    temperature = s[FL.TEMPERATURE.value]
     # The kinematic error's rate costs a cos per step; only damping, hysteresis and a rigid output use it.
     needs_deflection_rate = rigid or hysteresis or p[P.D_S] != 0.0
     motor_smooth = motor_law in (Law.LUGRE, Law.DAHL)
@@ -487,6 +489,16 @@ def _advance(
     time_s = x[X.TIME]
     t_s_prev = x[X.TS]
     travel = x[X.TRAVEL]
+    # The thermal network (section thermal): explicit Euler on the two rises above ambient; its time
+    # constants (minutes) dwarf any usable step, so the scheme is far inside its stability limit.
+    rise_w = x[X.RISE_MOTOR]
+    rise_g = x[X.RISE_GEAR]
+    t_amb = p[P.T_AMB]
+    heat_w = dt / p[P.C_W] if temperature else 0.0
+    heat_g = dt / p[P.C_G] if temperature else 0.0
+    g_wg = 1.0 / p[P.R_WG] if temperature else 0.0
+    g_wa = 1.0 / p[P.R_WA] if temperature else 0.0
+    g_ga = 1.0 / p[P.R_GA] if temperature else 0.0
     rows = 0
     until_row = 0  # steps until the next output row (a countdown: no integer division a step)
     for i in range(n_steps):
@@ -543,6 +555,13 @@ def _advance(
         moving_m, static_m = motor_levels(p, s, theta_m, speed_m, t_s, time_s, travel)
         asym_m = p[P.DIR_F]
         viscous_m = 0.0 if motor_smooth else p[P.B_M]
+        if temperature:
+            # The grease's viscosity law: the whole Karnopp motor friction scales with the gear's temperature.
+            scale = math.exp(-p[P.BETA_T] * (rise_g + t_amb - p[P.T_REF]))
+            moving_m *= scale
+            static_m *= scale
+            asym_m *= scale
+            viscous_m *= scale
         moving_l, static_l = load_levels(p, load_law, abs(omega_l_now))
         viscous_l = 0.0 if load_smooth else b_load
 
@@ -600,8 +619,19 @@ def _advance(
             out[rows, OUT.F_M] = f_m
             out[rows, OUT.F_L] = f_l
             out[rows, OUT.T_S] = t_s
+            out[rows, OUT.TEMP_MOTOR] = t_amb + rise_w if temperature else math.nan
+            out[rows, OUT.TEMP_GEAR] = t_amb + rise_g if temperature else math.nan
             rows += 1
         until_row -= 1
+
+        if temperature:
+            # Friction power at the step's mean speed (the friction is held over the step); copper loss
+            # at the step's current.
+            power_f = max(f_m * 0.5 * (omega_m + new_omega), 0.0)
+            power_f += max(f_l * 0.5 * (omega_l_now + new_omega_l), 0.0)
+            flow_wg = (rise_w - rise_g) * g_wg
+            rise_w += heat_w * (i_a * i_a * p[P.R_ARM] - flow_wg - rise_w * g_wa)
+            rise_g += heat_g * (power_f + flow_wg - rise_g * g_ga)
 
         omega_m = new_omega
         theta_m += dt * omega_m
@@ -627,6 +657,8 @@ def _advance(
     x[X.TIME] = time_s
     x[X.TS] = t_s_prev
     x[X.TRAVEL] = travel
+    x[X.RISE_MOTOR] = rise_w
+    x[X.RISE_GEAR] = rise_g
     return rows
 
 

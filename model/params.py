@@ -247,6 +247,46 @@ class WearDrift(Section):
     )
 
 
+Celsius = Annotated[float, Field(gt=-273.15, allow_inf_nan=False)]
+
+
+class Thermal(Section):
+    """Effect `temperature_dependence`: a lumped thermal network of the motor winding and the gear, and
+    the motor friction scaled by the gear's temperature T_g through the grease's viscosity law.
+
+    C_w·dT_w/dt = i_a²·R − (T_w − T_g)/R_wg − (T_w − T_amb)/R_wa
+    C_g·dT_g/dt = P_f + (T_w − T_g)/R_wg − (T_g − T_amb)/R_ga,  P_f = max(0, F_m·ω_m) + max(0, F_l·ω_l)
+    motor friction (Karnopp laws: levels, f_dir and b_m) × exp(−beta_T·(T_g − T_ref))
+    """
+
+    T_amb: Celsius = Field(description="ambient temperature [°C]")
+    T_ref: Celsius = Field(
+        default=25.0, description="reference temperature: the motor friction parameters hold there [°C]"
+    )
+    beta_T: Finite = Field(
+        description="friction's temperature coefficient: friction × exp(−beta_T·(T_g − T_ref)) [1/K]"
+    )
+    C_w: Positive = Field(description="heat capacity of the motor winding [J/K]")
+    C_g: Positive = Field(description="heat capacity of the gear [J/K]")
+    R_wg: Positive = Field(description="thermal resistance winding to gear [K/W]")
+    R_wa: Positive = Field(description="thermal resistance winding to ambient [K/W]")
+    R_ga: Positive = Field(description="thermal resistance gear to ambient [K/W]")
+    T_motor0: Celsius | None = Field(
+        default=None, description="winding temperature at the start; absent: T_amb [°C]"
+    )
+    T_gear0: Celsius | None = Field(
+        default=None, description="gear temperature at the start; absent: T_amb [°C]"
+    )
+
+    @property
+    def motor_start_c(self) -> float:
+        return self.T_amb if self.T_motor0 is None else self.T_motor0
+
+    @property
+    def gear_start_c(self) -> float:
+        return self.T_amb if self.T_gear0 is None else self.T_gear0
+
+
 class Numerics(Section):
     omega_stick_m: Positive = Field(
         default=1e-3,
@@ -290,6 +330,7 @@ class HarmonicDriveModel(BaseModel):
     hysteresis: Hysteresis | None = None
     thermal_drift: ThermalDrift | None = None
     wear_drift: WearDrift | None = None
+    thermal: Thermal | None = Field(default=None, description="effect `temperature_dependence`")
     numerics: Numerics = Field(default_factory=Numerics)
 
     @model_validator(mode="after")
@@ -318,6 +359,11 @@ class HarmonicDriveModel(BaseModel):
                     f"{effect} applies to Karnopp-type motor laws,"
                     f" not motor_law={self.motor_friction.motor_law!r}"
                 )
+        if smooth and self.thermal is not None and self.thermal.beta_T != 0.0:
+            raise ValueError(
+                "thermal.beta_T scales Karnopp-type motor laws only: set it to 0 with"
+                f" motor_law={self.motor_friction.motor_law!r}"
+            )
         return self
 
     @property
@@ -330,6 +376,8 @@ class HarmonicDriveModel(BaseModel):
         present = [e for e in EFFECT_SECTIONS if getattr(self, e) is not None]
         if self.load_friction is not None:
             present.append("load_side_friction")
+        if self.thermal is not None:
+            present.append("temperature_dependence")
         if not self.rigid:
             present.append("compliance")
         return present

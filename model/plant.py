@@ -102,7 +102,8 @@ class Plant:
         """Set the state. An unknown load position means the spring is relaxed (zero deflection).
 
         `hidden` sets the states no sensor sees (HIDDEN_STATES: bristles, hysteresis element); zero
-        by default. `time_s` is the time since the run started (thermal drift depends on it).
+        by default. `time_s` is the time since the run started (thermal drift depends on it). The
+        temperatures (a `thermal` section) start at its T_motor0 and T_gear0, ambient when unset.
         """
         r = self.model.mechanics.r
         self.x[:] = 0.0
@@ -112,6 +113,9 @@ class Plant:
         self.x[X.THETA_L] = rigid_l if theta_l is None or self.model.rigid else theta_l
         self.x[X.OMEGA_L] = r * omega_m if omega_l is None or self.model.rigid else omega_l
         self.x[X.TIME] = time_s
+        if (thermal := self.model.thermal) is not None:  # the temperatures at the start (thermal section)
+            self.x[X.RISE_MOTOR] = thermal.motor_start_c - thermal.T_amb
+            self.x[X.RISE_GEAR] = thermal.gear_start_c - thermal.T_amb
         if hidden is not None:
             self.x[list(HIDDEN_STATES)] = np.asarray(hidden, dtype=np.float64)
 

@@ -107,6 +107,16 @@ class P(Slots):
     OMEGA_STICK_M = auto()
     OMEGA_STICK_L = auto()
     WEAR_K = auto()
+    T_AMB = auto()  # thermal (temperature_dependence): the network's ambient [°C]
+    T_REF = auto()
+    BETA_T = auto()
+    C_W = auto()
+    C_G = auto()
+    R_WG = auto()
+    R_WA = auto()
+    R_GA = auto()
+    T_MOTOR0 = auto()  # the starting temperatures: read by model.plant's reset, not by the loop
+    T_GEAR0 = auto()
 
 
 class FL(Slots):
@@ -122,6 +132,7 @@ class FL(Slots):
     STRIBECK = auto()
     THERMAL = auto()
     WEAR = auto()
+    TEMPERATURE = auto()
 
 
 class X(Slots):
@@ -137,6 +148,8 @@ class X(Slots):
     TIME = auto()
     TS = auto()
     TRAVEL = auto()  # motor travel accumulated since the start, ∫|ω_m|dt [rad] (wear_drift)
+    RISE_MOTOR = auto()  # the winding's temperature above ambient, T_w − T_amb [K] (thermal)
+    RISE_GEAR = auto()  # the gear's, T_g − T_amb [K]: a zeroed state is a plant at ambient
 
 
 class OUT(Slots):
@@ -154,6 +167,8 @@ class OUT(Slots):
     F_M = auto()
     F_L = auto()
     T_S = auto()
+    TEMP_MOTOR = auto()  # T_w [°C]; NaN without a thermal section
+    TEMP_GEAR = auto()  # T_g [°C]; NaN without a thermal section
 
 
 class Law(Slots):
@@ -257,6 +272,16 @@ _TABLE: tuple[tuple[str, str, str, int | None, int, str], ...] = (
     ("d_th", "thermal_drift", "d_th", None, P.TH_D, STRUCTURAL),
     ("tau_th", "thermal_drift", "tau_th", None, P.TH_TAU, STRUCTURAL),
     ("k_wear", "wear_drift", "k_wear", None, P.WEAR_K, STRUCTURAL),
+    ("T_amb", "thermal", "T_amb", None, P.T_AMB, GIVEN),
+    ("T_ref", "thermal", "T_ref", None, P.T_REF, GIVEN),
+    ("beta_T", "thermal", "beta_T", None, P.BETA_T, STRUCTURAL),
+    ("C_w", "thermal", "C_w", None, P.C_W, STRUCTURAL),
+    ("C_g", "thermal", "C_g", None, P.C_G, STRUCTURAL),
+    ("R_wg", "thermal", "R_wg", None, P.R_WG, STRUCTURAL),
+    ("R_wa", "thermal", "R_wa", None, P.R_WA, STRUCTURAL),
+    ("R_ga", "thermal", "R_ga", None, P.R_GA, STRUCTURAL),
+    ("T_motor0", "thermal", "T_motor0", None, P.T_MOTOR0, GIVEN),
+    ("T_gear0", "thermal", "T_gear0", None, P.T_GEAR0, GIVEN),
     ("omega_stick_m", "numerics", "omega_stick_m", None, P.OMEGA_STICK_M, NUMERICS),
     ("omega_stick_l", "numerics", "omega_stick_l", None, P.OMEGA_STICK_L, NUMERICS),
 )
@@ -286,6 +311,7 @@ FLAG_SOURCES: dict[FL, str] = {
     FL.STRIBECK: "section stribeck",
     FL.THERMAL: "section thermal_drift",
     FL.WEAR: "section wear_drift",
+    FL.TEMPERATURE: "section thermal (effect temperature_dependence)",
 }
 """What sets each flag slot: the law selectors and the effect sections."""
 
@@ -296,6 +322,7 @@ EFFECT_FLAGS: dict[str, FL] = {
     "stribeck": FL.STRIBECK,
     "thermal_drift": FL.THERMAL,
     "wear_drift": FL.WEAR,
+    "thermal": FL.TEMPERATURE,
 }
 """The effect sections the kernel branches on, each with its flag (the others only set parameters)."""
 
@@ -307,6 +334,7 @@ SECTION_OWNERS: dict[str, str] = {
     "load_friction": "load_side_friction",
     "numerics": "numerics",
     **{effect: effect for effect in EFFECT_SECTIONS},
+    "thermal": "temperature_dependence",
 }
 """The docs/MODEL.md effect (or the plant's core, or its numerics) each section's parameters belong to."""
 
