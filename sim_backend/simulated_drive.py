@@ -41,7 +41,8 @@ _NO_FEEDFORWARD = np.empty((0, N_FF_COLUMNS))
 
 # The plant's truth per cycle (opt-in, `SimulatedDrive.record_truth`): the states at the cycle's start (as
 # the sample is taken), the torques averaged over the cycle's substeps (their mean is what changes the
-# speeds over the cycle), and the share of substeps each body spent stuck (velocity held at exactly 0).
+# speeds over the cycle), the share of substeps each body spent stuck (velocity held at exactly 0), and the
+# winding's and gear's temperatures at the cycle's start [°C] (the model's `thermal` section; NaN without).
 TRUTH_COLUMNS = (
     "t",
     "theta_m",
@@ -56,6 +57,8 @@ TRUTH_COLUMNS = (
     "f_l",
     "stuck_m",
     "stuck_l",
+    "temp_motor",
+    "temp_gear",
 )
 (
     T_T,
@@ -71,6 +74,8 @@ TRUTH_COLUMNS = (
     T_F_L,
     T_STUCK_M,
     T_STUCK_L,
+    T_TEMP_MOTOR,
+    T_TEMP_GEAR,
 ) = range(len(TRUTH_COLUMNS))
 _NO_TRUTH = np.empty((0, len(TRUTH_COLUMNS)))
 
@@ -84,6 +89,8 @@ def _truth_row(rows: np.ndarray, t: float, truth_row: np.ndarray) -> None:
     truth_row[T_OMEGA_M] = rows[0, OUT.OMEGA_M]
     truth_row[T_THETA_L] = rows[0, OUT.THETA_L]
     truth_row[T_OMEGA_L] = rows[0, OUT.OMEGA_L]
+    truth_row[T_TEMP_MOTOR] = rows[0, OUT.TEMP_MOTOR]
+    truth_row[T_TEMP_GEAR] = rows[0, OUT.TEMP_GEAR]
     for column, out in (
         (T_I_A, OUT.I_A),
         (T_TAU_M, OUT.TAU_M),

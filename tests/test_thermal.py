@@ -15,6 +15,9 @@ from model.params import HarmonicDriveModel, ModelFileError, load_model, parse_m
 from model.plant import Plant
 from model.registry import OUT, Mode, X
 from model.simulate import simulate
+from rig.config import RIG_DIR, load_rig_config
+from rig.interface import ControlMode
+from sim_backend.simulated_drive import TRUTH_COLUMNS, SimulatedDrive
 
 DT = 1e-4
 NETWORK = {"T_amb": 20.0, "T_ref": 25.0, "C_w": 0.5, "C_g": 2.0, "R_wg": 1.0, "R_wa": 4.0, "R_ga": 2.0}
@@ -232,3 +235,23 @@ def test_the_specialized_loop_integrates_the_network_as_the_general_one_bit_for_
     np.testing.assert_array_equal(results[1][0], results[0][0])
     np.testing.assert_array_equal(results[1][1], results[0][1])
     assert results[0][1][X.RISE_GEAR] > 0.0 and results[0][1][X.RISE_MOTOR] > results[0][1][X.RISE_GEAR]
+
+
+def test_the_simulated_drive_steps_the_temperatures_and_keeps_them_in_its_truth():
+    """The sim rig's drive steps the plant's whole state, the network included; its opt-in truth carries the
+    temperatures at each cycle's start (NaN for a model without the section)."""
+    config = load_rig_config(RIG_DIR / "sim.yaml")
+    temps = {}
+    for name in ("seed", "seed-thermal"):
+        plant = Plant(load_model(name))
+        drive = SimulatedDrive(plant, config)
+        drive.record_truth()
+        cycles = 2000
+        drive.run(ControlMode.VELOCITY, np.full(cycles, 50.0), np.zeros(cycles), 0.0)
+        assert drive.truth is not None
+        truth = np.concatenate(drive.truth)
+        temps[name] = truth[:, TRUTH_COLUMNS.index("temp_gear")], truth[:, TRUTH_COLUMNS.index("temp_motor")]
+    assert np.isnan(temps["seed"][0]).all() and np.isnan(temps["seed"][1]).all()
+    gear, motor = temps["seed-thermal"]
+    assert gear[0] == motor[0] == 22.0
+    assert np.all(np.diff(gear) >= 0.0) and gear[-1] > 22.0 and motor[-1] > gear[-1]
