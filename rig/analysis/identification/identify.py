@@ -16,7 +16,7 @@ import numpy as np
 
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel, save_model
-from model.registry import JOINT_CANDIDATES
+from model.registry import JOINT_CANDIDATES, MOTOR
 from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.fit.trajectory import CHANNELS, TrajectoryFit, TrajectoryProblem, fit_problem
@@ -146,7 +146,7 @@ def identify(
             if not math.isnan(_start_value(start, name))
         }
         for name, (value, se) in plan.estimates.items():
-            rows[name] = ParameterRow(name, _start_value(start, name), value, se, True, "motor")
+            rows[name] = ParameterRow(name, _start_value(start, name), value, se, True, MOTOR)
         for name in plan.free:
             rows[name] = ParameterRow(
                 name,

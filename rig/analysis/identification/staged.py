@@ -34,6 +34,7 @@ import numpy as np
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from model.plant import Plant
+from model.registry import BREAKAWAY, FRF, KINEMATIC, MOTOR, POSITION, STIFFNESS, STRUCTURAL, VELOCITY
 from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.identification.dynamics_stage import (
@@ -178,7 +179,7 @@ def _rig_constants(runs: list[Run], book: _Book) -> None:
         if len(given) > 1:
             raise UserInputError(f"staged identification: the runs disagree on {key}: {given}")
         book.update({name: given[0]})
-        book.flag(name, "motor", f"the rig's {key} (run metadata): given, not fitted")
+        book.flag(name, MOTOR, f"the rig's {key} (run metadata): given, not fitted")
 
 
 def _friction_slope(chirp: Run, model: HarmonicDriveModel) -> float:
@@ -197,7 +198,7 @@ def _mechanics(runs: list[Run], book: _Book) -> float:
     stiff = stiffness_and_load_friction(parts, book.model)
     offset = stiff.metrics.get("theta_l_offset", 0.0)
     stiffness = stiffness_names(book.model)
-    book.accept("stiffness", stiff, stiffness + load_friction_names(book.model))
+    book.accept(STIFFNESS, stiff, stiffness + load_friction_names(book.model))
     chirps = runs_of(runs, "chirp")
     if chirps:
         static_known = bool(stiff.values)
@@ -206,12 +207,12 @@ def _mechanics(runs: list[Run], book: _Book) -> float:
         names = ["J_m"] if book.model.rigid else ["J_m"] + ([] if static_known else stiffness[:1])
         if book.model.rigid:
             frf.undetermined["J_l"] = "a rigid axis shows J_m + r²·J_l only: J_m carries the sum"
-        book.accept("frf", frf, [*names, "J_l", "D_s"])
+        book.accept(FRF, frf, [*names, "J_l", "D_s"])
     else:
-        book.say("frf", ["skipped: no chirp run"])
+        book.say(FRF, ["skipped: no chirp run"])
     passes = runs_of(runs, "position-friction")
     ripple = kinematic_error(passes, _sharper_load_inertia(book, stiff))
-    book.accept("kinematic-error", ripple, ["A", "phi"], {"phi": math.pi})
+    book.accept(KINEMATIC, ripple, ["A", "phi"], {"phi": math.pi})
     return offset
 
 
@@ -243,14 +244,12 @@ def _friction(runs: list[Run], book: _Book) -> None:
         position.notes.append(
             f"s3 from these passes: {position.values['s3']:.5g} N·m (a check of the velocity stage's)"
         )
-    book.accept("friction-position", position, ["s1", "s2", *FOURIER_NAMES], scales)
-    velocity = velocity_friction(
-        sweep_parts(runs, book.model), book.model, book.joint.get("friction-position")
-    )
+    book.accept(POSITION, position, ["s1", "s2", *FOURIER_NAMES], scales)
+    velocity = velocity_friction(sweep_parts(runs, book.model), book.model, book.joint.get(POSITION))
     scales = {"f_dir": RELATIVE_SCALE * abs(book.value("s3"))} if book.model.direction_asymmetry else {}
-    book.accept("friction-velocity", velocity, velocity_names(book.model), scales)
+    book.accept(VELOCITY, velocity, velocity_names(book.model), scales)
     if "asymmetry_nm" in velocity.metrics and book.model.direction_asymmetry is None:
-        book.notes["friction-velocity"].append(
+        book.notes[VELOCITY].append(
             f"friction-velocity: direction asymmetry (forward − backward)/2 = "
             f"{velocity.metrics['asymmetry_nm']:.3g} N·m (a metric; not in the model)"
         )
@@ -260,16 +259,16 @@ def _expected(model: HarmonicDriveModel) -> dict[str, list[str]]:
     """What each stage estimates for this model."""
     article = model.motor_friction.motor_law == "article"
     stages = {
-        "motor": ["R", "K_b"],
-        "stiffness": [] if model.rigid else stiffness_names(model),
-        "frf": ["J_m", "J_l"] + ([] if model.rigid else ["D_s"]),
-        "kinematic-error": ["A", "phi"] if model.kinematic_error is not None else [],
-        "friction-position": ["s1", "s2", *FOURIER_NAMES] if article else [],
-        "friction-velocity": velocity_names(model),
-        "breakaway": ["static_factor"] if article else [],
+        MOTOR: ["R", "K_b"],
+        STIFFNESS: [] if model.rigid else stiffness_names(model),
+        FRF: ["J_m", "J_l"] + ([] if model.rigid else ["D_s"]),
+        KINEMATIC: ["A", "phi"] if model.kinematic_error is not None else [],
+        POSITION: ["s1", "s2", *FOURIER_NAMES] if article else [],
+        VELOCITY: velocity_names(model),
+        BREAKAWAY: ["static_factor"] if article else [],
     }
     if model.motor_friction.motor_law in ("coulomb_viscous", "stribeck"):
-        stages["breakaway"] = ["f_sm"]
+        stages[BREAKAWAY] = ["f_sm"]
     return stages
 
 
@@ -284,51 +283,51 @@ def _structural(runs: list[Run], book: _Book) -> None:
     if model.motor_friction.motor_law == "article":
         book.flag(
             "v_c",
-            "friction-velocity",
+            VELOCITY,
             "C·(1 + k_v(|ω| − v_c)) = C·(1 − k_v·v_c) + C·k_v·|ω|: v_c is absorbed by s3 and k_v; held",
         )
-        book.flag("a0", "friction-position", "a constant, collinear with s3: fixed at 0 (the mean is in s3)")
+        book.flag("a0", POSITION, "a constant, collinear with s3: fixed at 0 (the mean is in s3)")
         book.flag(
             "b_m",
-            "friction-velocity",
+            VELOCITY,
             "b_m·ω and C·k_v·|ω| both grow ∝ ω at steady speed: held (MODEL.md note 3: 0 with the"
             " article law)",
         )
     lf = model.load_friction
     if lf is not None:
         if "f_cl" not in book.estimates and "f_cl" in load_friction_names(model):
-            why = book.notes.get("stiffness", ["not run"])[0].removeprefix("stiffness: ")
+            why = book.notes.get(STIFFNESS, ["not run"])[0].removeprefix(f"{STIFFNESS}: ")
             for name in load_friction_names(model):
                 book.flag(
                     name,
-                    "stiffness",
+                    STIFFNESS,
                     "the load's friction adds r·F_l to the motor's torque at steady speed, inseparable from"
                     f" s3 by the motor current alone; the load angle's stage did not part them ({why}): held",
                 )
         if lf.f_sl is not None:
             book.flag(
                 "f_sl",
-                "stiffness",
+                STIFFNESS,
                 "the load's breakaway is not timed by these data (the load angle's noise hides when the"
                 " load starts at the sticks' slow speeds): held (at least f_cl)",
             )
     if model.kinematic_error is not None:
-        book.flag("k", "kinematic-error", "cycles of the error per motor turn: structural, held")
+        book.flag("k", KINEMATIC, "cycles of the error per motor turn: structural, held")
     if model.nonlinear_stiffness is not None:
         for name in ("T1", "T2"):
-            book.flag(name, "stiffness", "breakpoint torque: held at the start model's (catalog) value")
+            book.flag(name, STIFFNESS, "breakpoint torque: held at the start model's (catalog) value")
     for section, held in (
         ("hysteresis", ("T_h", "delta_h")),
         ("thermal_drift", ("d_th", "tau_th")),
     ):
         if getattr(model, section) is not None:
             for name in held:
-                book.flag(name, "structural", f"{section} is not estimated by the staged fit: held")
+                book.flag(name, STRUCTURAL, f"{section} is not estimated by the staged fit: held")
     data = model.to_dict()
     sections = {**data["motor_friction"], **data.get("load_friction", {})}
     for name in ("sigma0_m", "sigma1_m", "sigma0_l", "sigma1_l"):
         if name in sections:
-            book.flag(name, "structural", "bristle dynamics are not seen by steady runs: held")
+            book.flag(name, STRUCTURAL, "bristle dynamics are not seen by steady runs: held")
 
 
 def staged_estimates(runs: list[Run], start: HarmonicDriveModel) -> StagedResult:
@@ -340,13 +339,13 @@ def staged_estimates(runs: list[Run], start: HarmonicDriveModel) -> StagedResult
         book.update({"a0": 0.0})
     _rig_constants(runs, book)
     motor = motor_constants(runs_of(runs, "pulse"))
-    book.accept("motor", motor, ["R", "K_b"])
+    book.accept(MOTOR, motor, ["R", "K_b"])
     offset = 0.0
     for _ in range(ROUNDS):
         offset = _mechanics(runs, book)
         _friction(runs, book)
     brk = breakaway(runs, book.model, offset)
-    book.accept("breakaway", brk, ["static_factor", "f_sm"])
+    book.accept(BREAKAWAY, brk, ["static_factor", "f_sm"])
     _structural(runs, book)
     present = {str(run.meta.get("experiment")) for run in runs}
     notes = [f"experiments: {', '.join(sorted(present))}"]
