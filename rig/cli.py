@@ -4,6 +4,12 @@ Errors a user can cause end as one line on stderr and exit status 2; a device fa
 ends the run `aborted: <fault>` and exits 3; anything else is a bug and keeps its traceback. `--json`
 output is one JSON document on stdout, exactly the document the service returns; logs and progress go
 to stderr.
+
+Why commands import inside themselves: the core, the store and the service pull in SQLAlchemy,
+pyarrow, matplotlib, Dask and uvicorn, which take several seconds to import on a loaded machine, so a
+command imports only what it uses and `hdrig --help`, `hdrig model show` or `hdrig simulate` start in
+well under a second (figures: docs/BENCHMARKS.md, "Figures behind design choices in the code"). Only
+the light modules (parameters, inputs, faults, statuses) are imported above.
 """
 
 from __future__ import annotations
