@@ -25,7 +25,7 @@ from rig.core.operations import AnalysisOrder, AnalysisRequest, RunRequest
 from rig.faults import DeviceFaultError
 from rig.lab import Landed
 from rig.store.catalog import DEFAULT_PAGE
-from rig.store.runfile import read_parquet
+from rig.store.runfile import read_parquet, write_run
 from rig.store.runs import RunQuery, export_path
 
 Progress = Callable[[str, float], None]  # rig.runner.Progress: (phase, fraction done)
@@ -112,8 +112,6 @@ class RemoteLab:
         return self.client.run(run_id)
 
     def export_run(self, run_id: str, fmt: str, out: str | Path) -> Path:
-        from rig.store.runfile import write_run
-
         path = export_path(run_id, fmt, out)
         with tempfile.TemporaryDirectory(prefix="hdrig-export-") as scratch:
             native = self.client.download(run_id, "parquet", out=Path(scratch) / f"{run_id}.parquet")

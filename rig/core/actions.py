@@ -45,6 +45,7 @@ from rig.core.documents import (
     RunPlan,
     TrendDocument,
 )
+from rig.core.trend import plot_trend, trend_document
 from rig.experiments import CAMPAIGN, CAMPAIGN_ORDER, EXPERIMENTS, experiment_named
 from rig.experiments.base import RIG_CONTEXT, ExperimentParams, RigContext
 from rig.experiments.endurance import EnduranceParams
@@ -53,6 +54,7 @@ from rig.interface import ModeRefusedError, Rig
 from rig.runner import Progress, RunHooks, RunOutcome, analyze_stored, make_params, run_experiment
 from rig.status import RunStatus
 from rig.store.catalog import DEFAULT_PAGE, Cursor, page_of_runs
+from rig.store.importmap import parse_mapping
 from rig.store.runfile import json_text
 from rig.store.runs import (
     ARTIFACTS_DIR,
@@ -526,8 +528,6 @@ def _kind_of_result(body: Any) -> JobKind | None:
 
 
 def _runs_for(data: Sequence[str], store: RunStore, mapping: Sequence[str] | None = None) -> list[Run]:
-    from rig.store.importmap import parse_mapping
-
     if not data:
         raise UserInputError("data: name at least one run id, run file or `latest`")
     return load_runs(list(data), store, parse_mapping(mapping))
@@ -568,7 +568,7 @@ def fit(
 ) -> FitDocument:
     """Identify the model's parameters from runs (store ids, files or `latest`); see the module doc.
     `mapping`: `--map` entries or mapping files for files with other column names (`rig.store.importmap`)."""
-    from rig.analysis.identification import identify, save_identified
+    from rig.analysis.identification import identify, save_identified  # numba, SciPy: paid by analyses only
 
     start = load_model(model)
     _check_out(out)
@@ -594,7 +594,7 @@ def find_gaps(
 ) -> GapsDocument:
     """The model-gap workflow on runs; the model with the effects added (if any) is written as the
     module says."""
-    from rig.analysis.gaps import find_gaps as workflow
+    from rig.analysis.gaps import find_gaps as workflow  # numba, SciPy: paid by analyses only
 
     start = load_model(model)
     runs = _runs_for(data, store, mapping)
@@ -609,7 +609,7 @@ def find_gaps(
 
 def fit_document(result: Identification, folder: Path | None = None) -> FitDocument:
     """The `fit --json` document of an identification."""
-    from rig.analysis.identification.identify import FIT_METRIC
+    from rig.analysis.identification.identify import FIT_METRIC  # numba, SciPy: paid by analyses only
 
     return FitDocument(
         model_file=str(result.model_file),
@@ -668,8 +668,6 @@ def trend(
 ) -> TrendDocument:
     """`hdrig trend`: the checkpoints of an endurance run, or of every run of a gear unit, against time
     and duty cycles, with the online tracker's level; `plot_dir` also gets the plots."""
-    from rig.core.trend import plot_trend, trend_document
-
     document = trend_document(store, run_id=run_id, unit=unit)
     if plot_dir is not None:
         document.plots = [str(p) for p in plot_trend(document, Path(plot_dir))]

@@ -34,6 +34,7 @@ from pydantic import Field
 from model.errors import UserInputError
 from rig.core import actions
 from rig.core.documents import Document
+from rig.core.trend import trend_document
 from rig.status import RunStatus
 from rig.store.catalog import unit_fits
 from rig.store.runfile import json_text
@@ -284,8 +285,6 @@ def spread_of(
 
 
 def _slopes(store: RunStore, unit: str) -> list[TrendSlope]:
-    from rig.core.trend import trend_document
-
     try:
         trend = trend_document(store, unit=unit)
     except UserInputError:  # no endurance checkpoints for this unit
