@@ -111,62 +111,14 @@ def identify(
         raise UserInputError("fit needs at least one run (--data)")
     staged_runs = [r for r in runs if carries_stage_metadata(r)]
     plain = [r for r in runs if not carries_stage_metadata(r)]
-    inverse: dict[str, Any] | None = None
     if staged_runs:
         say("staged estimates", 0.05)
-        staged = staged_estimates(staged_runs, start)
-        notes = list(staged.notes)
-        if plain:
-            notes.append(
-                f"{len(plain)} run(s) without experiment metadata: used by the joint refinement's"
-                " trajectories only"
-            )
-        rows = {
-            e.name: ParameterRow(
-                e.name, _start_value(start, e.name), e.value, e.std_error, e.identifiable, e.stage, e.note
-            )
-            for e in staged.estimates
-        }
-        staged_model = staged.model
-        trajectory_runs = _joint_runs(staged_runs) + [r for r in plain if r.input_column is not None]
-        names = [n for n in JOINT_CANDIDATES if n in rows and rows[n].identifiable]
+        begun = _from_stages(staged_runs, plain, start)
     else:
         say("what the columns determine", 0.05)
-        plan = plan_for_plain_runs(plain, start)
-        notes = [
-            "no run carries experiment metadata: fitted by trajectory least squares on what the"
-            " columns determine",
-            *plan.notes,
-        ]
-        rows = {
-            name: ParameterRow(
-                name, _start_value(start, name), _start_value(start, name), None, False, "columns", why
-            )
-            for name, why in plan.held.items()
-            if not math.isnan(_start_value(start, name))
-        }
-        for name, (value, se) in plan.estimates.items():
-            rows[name] = ParameterRow(name, _start_value(start, name), value, se, True, MOTOR)
-        for name in plan.free:
-            rows[name] = ParameterRow(
-                name,
-                _start_value(start, name),
-                _start_value(plan.start, name),
-                None,
-                False,
-                "trajectory",
-                "not refined (--no-joint)"
-                if not joint
-                else "the joint refinement was not kept (notes): start value",
-            )
-        staged_model = plan.start
-        trajectory_runs = [r for r in plain if r.input_column is not None]
-        names = list(plan.free)
-        if plan.inverse is not None:
-            inverse = {"fit": plan.inverse.as_json()}
-            seeded = seeded_model(plan.start, plan.inverse)
-            if seeded is not None:
-                staged_model = _better_start(seeded, plan.start, trajectory_runs, notes)
+        begun = _from_columns(plain, start, joint)
+    rows, notes, staged_model, trajectory_runs = begun.rows, begun.notes, begun.model, begun.trajectory_runs
+    names, inverse = begun.names, begun.inverse
     if not trajectory_runs:
         notes.append(
             f"no {'/'.join(JOINT_EXPERIMENTS)} run: no trajectory to refine on, fit error not measured"
@@ -222,25 +174,121 @@ def identify(
             f" ({held['joint']:.4g} against {held[kept]:.4g}): {kept} values kept"
         )
     if kept == "joint" and refined is not None:
-        scale = disagreement_scales(priors, refined.data_only)
-        widened = [f"{name} ×{factor:.2g}" for name, factor in scale.items() if factor > 1.0]
-        if widened:
-            notes.append(
-                "σ widened where the staged estimate and the trajectories alone disagree beyond their σ"
-                f" (Birge ratio): {', '.join(widened)}"
-            )
-        for p in refined.parameters:
-            row = rows[p.name]
-            row.stage = "trajectory" if row.stage == "trajectory" else row.stage + " + joint"
-            if p.identifiable:
-                sigma = None if p.std_error is None else p.std_error * scale.get(p.name, 1.0)
-                row.estimate, row.uncertainty, row.identifiable, row.note = p.estimate, sigma, True, ""
-            elif row.stage == "trajectory":
-                row.note = f"joint: {p.note}; start value kept"
-            else:
-                row.note = (row.note + "; " if row.note else "") + f"joint: {p.note}, staged value kept"
+        _take_joint_values(rows, refined, priors, notes)
     model = candidates[kept]
-    for row in rows.values():  # the rows tell the model returned, whatever it was built from
+    _rows_follow(rows, model, kept)
+    if inverse is not None:
+        inverse["trajectory"] = axis_figures(model, trajectory_runs)
+    result = _finish(model, list(rows.values()), cost["start"], cost[kept], notes, runs, report_dir, say)
+    result.held_out = {"every": HOLDOUT_EVERY, "errors": held, "kept": kept}
+    result.inverse_model = inverse
+    return result
+
+
+@dataclass
+class _Start:
+    """Where the joint step starts: what the staged (or the columns') estimates left."""
+
+    model: HarmonicDriveModel
+    rows: dict[str, ParameterRow]
+    notes: list[str]
+    trajectory_runs: list[Run]
+    names: list[str]  # the parameters the joint step may move
+    inverse: dict[str, Any] | None = None
+
+
+def _from_stages(staged_runs: list[Run], plain: list[Run], start: HarmonicDriveModel) -> _Start:
+    """The staged estimates of runs that carry what each stage needs; `plain` runs join the trajectories."""
+    staged = staged_estimates(staged_runs, start)
+    notes = list(staged.notes)
+    if plain:
+        notes.append(
+            f"{len(plain)} run(s) without experiment metadata: used by the joint refinement's"
+            " trajectories only"
+        )
+    rows = {
+        e.name: ParameterRow(
+            e.name, _start_value(start, e.name), e.value, e.std_error, e.identifiable, e.stage, e.note
+        )
+        for e in staged.estimates
+    }
+    staged_model = staged.model
+    trajectory_runs = _joint_runs(staged_runs) + [r for r in plain if r.input_column is not None]
+    names = [n for n in JOINT_CANDIDATES if n in rows and rows[n].identifiable]
+    return _Start(staged_model, rows, notes, trajectory_runs, names)
+
+
+def _from_columns(plain: list[Run], start: HarmonicDriveModel, joint: bool) -> _Start:
+    """What the columns of runs without experiment metadata determine, the rest held."""
+    inverse: dict[str, Any] | None = None
+    plan = plan_for_plain_runs(plain, start)
+    notes = [
+        "no run carries experiment metadata: fitted by trajectory least squares on what the"
+        " columns determine",
+        *plan.notes,
+    ]
+    rows = {
+        name: ParameterRow(
+            name, _start_value(start, name), _start_value(start, name), None, False, "columns", why
+        )
+        for name, why in plan.held.items()
+        if not math.isnan(_start_value(start, name))
+    }
+    for name, (value, se) in plan.estimates.items():
+        rows[name] = ParameterRow(name, _start_value(start, name), value, se, True, MOTOR)
+    for name in plan.free:
+        rows[name] = ParameterRow(
+            name,
+            _start_value(start, name),
+            _start_value(plan.start, name),
+            None,
+            False,
+            "trajectory",
+            "not refined (--no-joint)"
+            if not joint
+            else "the joint refinement was not kept (notes): start value",
+        )
+    staged_model = plan.start
+    trajectory_runs = [r for r in plain if r.input_column is not None]
+    names = list(plan.free)
+    if plan.inverse is not None:
+        inverse = {"fit": plan.inverse.as_json()}
+        seeded = seeded_model(plan.start, plan.inverse)
+        if seeded is not None:
+            staged_model = _better_start(seeded, plan.start, trajectory_runs, notes)
+    return _Start(staged_model, rows, notes, trajectory_runs, names, inverse)
+
+
+def _take_joint_values(
+    rows: dict[str, ParameterRow],
+    refined: TrajectoryFit,
+    priors: dict[str, tuple[float, float]],
+    notes: list[str],
+) -> None:
+    """The rows take the kept joint refinement's values, σ widened where the methods disagree."""
+    scale = disagreement_scales(priors, refined.data_only)
+    widened = [f"{name} ×{factor:.2g}" for name, factor in scale.items() if factor > 1.0]
+    if widened:
+        notes.append(
+            "σ widened where the staged estimate and the trajectories alone disagree beyond their σ"
+            f" (Birge ratio): {', '.join(widened)}"
+        )
+    for p in refined.parameters:
+        row = rows[p.name]
+        row.stage = "trajectory" if row.stage == "trajectory" else row.stage + " + joint"
+        if p.identifiable:
+            sigma = None if p.std_error is None else p.std_error * scale.get(p.name, 1.0)
+            row.estimate, row.uncertainty, row.identifiable, row.note = p.estimate, sigma, True, ""
+        elif row.stage == "trajectory":
+            row.note = f"joint: {p.note}; start value kept"
+        else:
+            row.note = (row.note + "; " if row.note else "") + f"joint: {p.note}, staged value kept"
+
+
+def _rows_follow(rows: dict[str, ParameterRow], model: HarmonicDriveModel, kept: str) -> None:
+    """The rows tell the model returned, whatever it was built from."""
+
+    for row in rows.values():
         value = _start_value(model, row.name)
         if not math.isnan(value) and not math.isclose(value, row.estimate, rel_tol=1e-12, abs_tol=0.0):
             if row.stage != "trajectory":
@@ -250,12 +298,6 @@ def identify(
                 )
                 row.uncertainty, row.identifiable = None, False
             row.estimate = value
-    if inverse is not None:
-        inverse["trajectory"] = axis_figures(model, trajectory_runs)
-    result = _finish(model, list(rows.values()), cost["start"], cost[kept], notes, runs, report_dir, say)
-    result.held_out = {"every": HOLDOUT_EVERY, "errors": held, "kept": kept}
-    result.inverse_model = inverse
-    return result
 
 
 def fitted_channels(model: HarmonicDriveModel) -> tuple[str, ...]:
