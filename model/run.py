@@ -28,6 +28,10 @@ KNOWN_COLUMNS = {
     "theta_l": "rad",
     "omega_l": "rad/s",
     "i_a": "A",
+    "tau_in": "N·m",
+    "tau_out": "N·m",
+    "temp_gear": "°C",
+    "temp_motor": "°C",
 }
 """The docs/INTERFACE.md columns and their units. Runs may carry further columns."""
 
@@ -42,6 +46,10 @@ PLAUSIBLE_MAGNITUDE = {
     "theta_l": 1e9,  # rad
     "omega_m": 1e5,  # rad/s: ~1 million rpm
     "omega_l": 1e5,  # rad/s
+    "tau_in": 1e5,  # N·m, as tau_m
+    "tau_out": 1e6,  # N·m, as tau_ext
+    "temp_gear": 1e4,  # °C: beyond any grease; a unit error (mK, K·1000) lands above
+    "temp_motor": 1e4,  # °C
 }
 """Beyond these magnitudes a known column's value is no measurement of a rig but a unit error or a
 damaged cell (a current of 1e300 A): refused, not fitted. Far above any rig, so no real run trips them."""

@@ -65,6 +65,12 @@ class Sensors(_Section):
     )
     current_noise_a: float = Field(default=0.0, ge=0, description="current sensor noise, 1 σ [A]")
     load_sensor_noise_rad: float = Field(default=0.0, ge=0, description="output angle noise, 1 σ [rad]")
+    temperature_noise_c: float = Field(
+        default=0.0, ge=0, description="temperature probes' noise, 1 σ (a model with `thermal`) [°C]"
+    )
+    temperature_lag_s: float = Field(
+        default=0.0, ge=0, description="temperature probes' first-order time constant; 0: none [s]"
+    )
     seed: int = Field(default=0, description="noise generator seed, for reproducible runs")
 
 

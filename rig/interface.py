@@ -293,6 +293,10 @@ class Rig(ABC):
     supports_feedforward: bool = False
     """Whether `_run_cycles` takes a feed-forward track (`Segment.feedforward`)."""
 
+    extra_columns: tuple[str, ...] = ()
+    """Optional run-format columns this rig records beside SAMPLE_COLUMNS in every block (docs/INTERFACE.md:
+    `temp_gear`, `temp_motor`, `tau_in`, `tau_out`), when it has the sensors."""
+
     def check_modes(self, modes: Collection[ControlMode]) -> list[str]:
         """Before anything moves: how this rig plays programs of `modes`, one line each (none: as
         asked). A mode it cannot play is a UserInputError in one line saying what the rig offers."""

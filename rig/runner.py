@@ -373,7 +373,7 @@ def _play(
     rig.enable()
     # A run's clock starts at its own first sample, also on a rig kept open across runs (the rig worker).
     t_origin_s = rig.t_s
-    columns = list(SAMPLE_COLUMNS)
+    columns = [*SAMPLE_COLUMNS, *rig.extra_columns]
     model = rig.model
     meta: dict[str, Any] = {
         "sample_rate_hz": config.sample_rate_hz,

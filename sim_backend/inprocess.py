@@ -5,10 +5,12 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from scipy.signal import lfilter
 
 from model.feedforward import FeedForwardTrack
 from model.params import HarmonicDriveModel, load_model
 from model.plant import Plant
+from model.registry import X
 from rig.config import RigConfig
 from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig
 from sim_backend.simulated_drive import TRUTH_COLUMNS, SimulatedDrive
@@ -27,6 +29,13 @@ class SimRig(Rig):
         self.plant.reset(theta_m=theta_m)
         self.drive = SimulatedDrive(self.plant, config)
         self._wall_start: float | None = None
+        self._keep_truth = False
+        if self.model.thermal is not None:
+            # The probes read the plant's temperature of every cycle, which the drive's truth record
+            # carries: kept on, and emptied after each block unless a test asked for the truth.
+            self.extra_columns = TEMPERATURE_COLUMNS
+            self._probes = TemperatureProbes(config, self._temperatures_c())
+            self.drive.record_truth(True)
 
     source = "sim"
 
@@ -53,12 +62,14 @@ class SimRig(Rig):
     def record_truth(self, on: bool = True) -> None:
         """Keep the plant's true states and torques of every cycle from now on, beside the samples
         (`truth()`); off by default, when the loop records nothing more. For tests."""
-        self.drive.record_truth(on)
+        self._keep_truth = on
+        if not self.extra_columns or on:
+            self.drive.record_truth(on)
 
     def truth(self) -> dict[str, np.ndarray]:
         """The truth recorded since `record_truth`: TRUTH_COLUMNS of `sim_backend.simulated_drive`, one
         row per cycle run, `t` equal to the samples' `t` [SI units, motor side as the samples]."""
-        if self.drive.truth is None:
+        if self.drive.truth is None or not self._keep_truth:
             raise RuntimeError("truth is not being recorded: call record_truth() first")
         rows = np.concatenate([*self.drive.truth, np.empty((0, len(TRUTH_COLUMNS)))])
         return {name: rows[:, i] for i, name in enumerate(TRUTH_COLUMNS)}
@@ -76,4 +87,49 @@ class SimRig(Rig):
             ahead = self._wall_start + self.t_s - time.monotonic()
             if ahead > 0:
                 time.sleep(ahead)
-        return {name: rows[:, i] for i, name in enumerate(SAMPLE_COLUMNS)}, code
+        block = {name: rows[:, i] for i, name in enumerate(SAMPLE_COLUMNS)}
+        if self.extra_columns and self.drive.truth is not None:
+            cycles = self.drive.truth[-1]
+            plant_c = np.stack([cycles[:, TRUTH_COLUMNS.index(name)] for name in TEMPERATURE_COLUMNS])
+            if not self._keep_truth:
+                self.drive.truth.clear()
+            block.update(self._probes.read(plant_c, self.period_s))
+        return block, code
+
+    def _temperatures_c(self) -> np.ndarray:
+        """The plant's winding and gear temperatures now [°C] (its states are rises above ambient)."""
+        assert self.model.thermal is not None
+        ambient = self.model.thermal.T_amb
+        return np.array([ambient + self.plant.x[X.RISE_MOTOR], ambient + self.plant.x[X.RISE_GEAR]])
+
+
+TEMPERATURE_COLUMNS = ("temp_motor", "temp_gear")
+
+
+class TemperatureProbes:
+    """The rig's temperature probes on the winding and the gear housing: each a first-order lag of
+    `sensors.temperature_lag_s` behind the plant's temperature, with white noise of
+    `sensors.temperature_noise_c`, read from the plant's temperature of every cycle."""
+
+    def __init__(self, config: RigConfig, start_c: np.ndarray) -> None:
+        self.lag_s = config.sensors.temperature_lag_s
+        self.noise_c = config.sensors.temperature_noise_c
+        self.rng = np.random.default_rng([config.sensors.seed, 0x7E])  # its own stream: other noise unchanged
+        self.state_c = start_c.astype(float)
+
+    def read(self, plant_c: np.ndarray, period_s: float) -> dict[str, np.ndarray]:
+        """What the probes read over a block whose plant temperatures were `plant_c` (a row per column of
+        TEMPERATURE_COLUMNS, a value per cycle) [°C]."""
+        out = {}
+        n = plant_c.shape[1]
+        for i, name in enumerate(TEMPERATURE_COLUMNS):
+            truth = plant_c[i]
+            if self.lag_s > 0.0 and n:
+                alpha = 1.0 - np.exp(-period_s / self.lag_s)  # seen[k] = seen[k-1] + α·(truth[k] − seen[k-1])
+                seen, _ = lfilter([alpha], [1.0, alpha - 1.0], truth, zi=[(1.0 - alpha) * self.state_c[i]])
+            else:
+                seen = truth.copy()
+            if n:
+                self.state_c[i] = seen[-1]
+            out[name] = seen + self.noise_c * self.rng.standard_normal(n) if self.noise_c > 0 else seen
+        return out
