@@ -53,27 +53,16 @@ def timed(cmd: list[str], env: dict[str, str] | None = None) -> tuple[float, flo
 
 
 def bench_simulate(work: Path) -> None:
+    from seed_loop_build import compile_seed_loop
+
     from model.params import load_model
     from model.plant import kernel_vectors
-    from model.registry import FL, slot_defines
+    from model.registry import FL
 
     p, flags = kernel_vectors(load_model("seed"))
     params = work / "seed_params.bin"
     p.tofile(params)
-    loop = work / "seed_loop"
-    subprocess.run(
-        [
-            "gcc",
-            "-O2",
-            "-march=native",
-            *slot_defines(),
-            "-o",
-            str(loop),
-            str(REPO / "bench/seed_loop.c"),
-            "-lm",
-        ],
-        check=True,
-    )
+    loop = compile_seed_loop(work)
     print("\n## hdrig simulate vs a plain C loop (seed, sine 2 V 0.5 Hz, dt 1e-4 s, 10 Hz output)\n")
     print(
         "| simulated s | steps | hdrig wall s / CPU s | hdrig peak MB | C wall s / CPU s | C peak MB"

@@ -53,10 +53,11 @@ import numpy as np
 import scipy
 from numpy.typing import NDArray
 from scipy.integrate import solve_ivp
+from seed_loop_build import compile_seed_loop
 
 from model.params import HarmonicDriveModel, load_model
 from model.plant import Plant
-from model.registry import FL, OUT, slot_defines
+from model.registry import FL, OUT
 
 REPO = Path(__file__).resolve().parent.parent
 PRESET = "seed"
@@ -595,20 +596,7 @@ def bench_whole_process(model: HarmonicDriveModel) -> None:
         work = Path(work_dir)
         params = work / "seed_params.bin"
         p.tofile(params)
-        loop = work / "seed_loop"
-        subprocess.run(
-            [
-                "gcc",
-                "-O2",
-                "-march=native",
-                *slot_defines(),
-                "-o",
-                str(loop),
-                str(REPO / "bench/seed_loop.c"),
-                "-lm",
-            ],
-            check=True,
-        )
+        loop = compile_seed_loop(work)
         print(
             "   | simulated s | steps | hdrig wall s / CPU s | hdrig peak MB | C wall s / CPU s | C peak MB"
             " | ratio wall | ratio CPU | target | verdict wall, CPU | max |θ_m hdrig − C| |"
