@@ -325,14 +325,11 @@ def shooting_windows(run: Run, window_s: float, quiet_rows: int = 6) -> list[Run
 
 SMOOTHING_WINDOW_S = 0.005
 """The local cubic the windows' starting speeds come from spans 5 samples at 1 kHz: the shortest a cubic
-fits. What the samples barely resolve (the kinematic error's ripple at k·ω_m, up to ~800 Hz on the seed
-joint, and the joint's response to it) a longer fit smooths away, and every window then starts with a
-speed error tied to the state, the same in every run: the fit absorbs it in friction and inertia. On
-ideal-sensor data of our plant, all eight joint parameters free from the truth: with the plant's own
-speeds, exact; with an 11-sample fit, b_l −10.9 % (27σ), k_v +3.5 %, static_factor +2.1 %, J_m
-−0.049 %; with 5 samples, −2.0 %, +1.0 %, +1.2 %, −0.013 %. The price is noise (5-point speeds of a
-17-bit encoder: ~0.013 rad/s), random from window to window, which the window-clustered σ carries. Over
-20 noise seeds (bench_identify), J_m −0.037 ± 0.023 % → −0.005 ± 0.067 %, RMS z 1.87 → 1.28."""
+fits. What the samples barely resolve (the kinematic error's ripple at k·ω_m and the joint's response to
+it) a longer fit smooths away, and every window then starts with a speed error tied to the state, the
+same in every run: the fit absorbs it in friction and inertia, which a longer fit biased measurably on
+ideal-sensor data. The price is noise, random from window to window, which the window-clustered σ
+carries. Figures: docs/BENCHMARKS.md, "Figures behind design choices in the code"."""
 
 
 def _smoothing_length(window_s: float, dt_s: float) -> int:
