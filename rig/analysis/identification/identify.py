@@ -303,9 +303,8 @@ def _rows_follow(rows: dict[str, ParameterRow], model: HarmonicDriveModel, kept:
 def fitted_channels(model: HarmonicDriveModel) -> tuple[str, ...]:
     """The measured angles the trajectories are fitted on: both, but only θ_m for a rigid model. Its θ_l
     is r·θ_m plus the kinematic error, nothing the dynamics add, and scaled by its small spread within a
-    window it magnified the mismatch between a continuous input and its samples: an exact `hdrig
-    simulate` output of seed-rigid gave J_m +1.4 % (13σ) at a fit error of 0.0033 with θ_l, −0.1 % at
-    0.00017 without."""
+    window it magnified the mismatch between a continuous input and its samples, enough to bias J_m by
+    many σ on exact simulated data (docs/BENCHMARKS.md, "Figures behind design choices in the code")."""
     return ("theta_m",) if model.rigid else tuple(CHANNELS)
 
 
@@ -325,10 +324,9 @@ def _out_of_a_breakaway_minimum(
     """The fit again from a breakaway level whose cost is lower, when there is one.
 
     The breakaway level moves the trajectories only through when each stick ends, and with the other
-    friction off at the start the fit can settle where a wrong level and a shifted stick compensate: a
-    lab file's open-loop sine (seed-rigid, start s3 −17 %, J_m +27 %) gave static_factor 0.82 ± 0.024
-    (truth 1.0388) at an RMS of 0.000271, against 0.000168 from the truth's side (with a 14-bit encoder
-    0.75 ± 0.072 at 0.000501, against 0.000460). The level at BREAKAWAY_RATIOS of the moving level is
+    friction off at the start the fit can settle where a wrong level and a shifted stick compensate, at
+    a higher cost than the truth's side (seen on a lab file's open-loop sine; figures in
+    docs/BENCHMARKS.md). The level at BREAKAWAY_RATIOS of the moving level is
     tried at the other fitted values; from the best, if lower, the fit is run again and kept if it ends
     lower. Skipped when a staged estimate is the level's prior (it anchors it)."""
     name = next((n for n in names if n in BREAKAWAY_LEVELS and n not in priors), None)
