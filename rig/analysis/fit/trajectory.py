@@ -104,16 +104,11 @@ PLANT_SOURCE = "sim"
 """`meta["source"]` of runs the project's simulated plant made (`model.simulate`, the sim rigs)."""
 EVENT_STEP_S = 2.5e-6
 """A continuous process's replay steps at most this long over the sample intervals where a body stops,
-starts or reverses (see `_Replay`). Karnopp friction's error there is first order in this step: on
-ideal-sensor data of a plant stepped at 0.1 µs (0.1 ms elsewhere) J_l came out −0.059 / −0.026 /
-−0.014 / −0.010 % at 33 / 10 / 3.3 / 1 µs (σ 0.007 %). Cost on those runs: 2.6× the steps of a plain
-0.1 ms replay (553 segments for 156 windows), 30 against 12 CPU-ms a residual (before `VOLTAGE_REFINE`).
-Noisy sensors cost more: a still body's measured speed flips sign with the noise, which `speed_bands`
-tells from a stop. On an 8 s voltage-mode lab run of the independent generator (14-bit encoder, noisy
-output sensor) a residual took 1.38 M steps without it, 0.93 M with it (0.80 M of them the voltage
-mode's tenth step), and the identification 19.9 against 17.0 CPU-s (3.9 with no refinement at all).
-Cheaper, less exact: 5 µs here (J_l −0.007 % on the 1 µs plant) and a quarter step in voltage mode
-(J_m +0.014 %), each measured alone; together 0.64 M steps (without `speed_bands`)."""
+starts or reverses (see `_Replay`). Karnopp friction's error there is first order in this step, and
+coarser steps biased J_l measurably on ideal-sensor data; this step buys most of the accuracy for a few
+times the steps of a plain replay. Noisy sensors cost more: a still body's measured speed flips sign
+with the noise, which `speed_bands` tells from a stop. Figures: docs/BENCHMARKS.md, "Figures behind
+design choices in the code"."""
 
 
 def plant_step(run: Run) -> float | None:
@@ -136,9 +131,9 @@ replay's own step; a plant integrated finer than that is near-continuous, and re
 VOLTAGE_REFINE = 10
 """A continuous process driven by voltage is replayed at a tenth of the step: the back-EMF torque is
 taken at the speed half a step old, which acts as an inertia c_e·h/2 (c_e = K_m·K_b/R): +0.28 % of the
-seed's J_m at 0.1 ms, first order in the step, and the one error of the kind left that is not negligible
-(viscous friction and spring damping are 100× smaller on the seed joint). Ideal-sensor pulse/step/sine
-runs of a plant at 1 µs: J_m +0.049 / +0.014 / +0.007 % at 0.1 ms / a quarter / a tenth (σ 0.005 %)."""
+seed's J_m at 0.1 ms, first order in the step, and the one error of the kind left that is not
+negligible (viscous friction and spring damping are two orders smaller on the seed joint). A tenth of the
+step brought the bias within about one σ on ideal-sensor runs (docs/BENCHMARKS.md)."""
 
 
 def replay_scheme(run: Run, dt_s: float) -> tuple[float, bool]:
@@ -162,16 +157,15 @@ class _Replay:
     - the project's simulated plant: its own semi-implicit Euler at its own step, each sample's input
       held over its interval, which reproduces it exactly;
     - any other process, taken as continuous (hardware, another integrator): against it, that Euler is
-      first order, and J_l came out −0.35 % and J_m +0.13 % on ideal-sensor data of a plant stepped at
-      0.1 µs. Its speed lives half a step behind its position (leapfrog), so the step that starts on a
-      sample boundary spans half of each neighbouring interval and takes the mean of their inputs, not
-      the new one (alone: J_l −0.15 %). Karnopp friction is first order at every stop, start and
-      reversal (a whole step at zero speed, the static level for a whole step): the intervals where a
-      measured speed changes sign are stepped at `EVENT_STEP_S`, the speeds moved to the new step's
-      half-step at each change of step (then J_l −0.013 %, J_m +0.022 %, at σ 0.007 / 0.024 %). Last,
-      the back-EMF (`VOLTAGE_REFINE`). With the 5-sample starting speeds (`SMOOTHING_WINDOW_S`), on a
-      plant at 1 µs: J_l −0.004 %, J_m +0.007 % (σ 0.0015 / 0.0035 %), for ~5× the steps of the plain
-      replay (756 k against 155 k on those runs).
+      first order, which biased both inertias measurably. Its speed lives half a step behind its
+      position (leapfrog), so the step that starts on a sample boundary spans half of each neighbouring
+      interval and takes the mean of their inputs, not the new one. Karnopp friction is first order at
+      every stop, start and reversal (a whole step at zero speed, the static level for a whole step):
+      the intervals where a measured speed changes sign are stepped at `EVENT_STEP_S`, the speeds moved
+      to the new step's half-step at each change of step. Last, the back-EMF (`VOLTAGE_REFINE`). With
+      the 5-sample starting speeds (`SMOOTHING_WINDOW_S`) the inertias come out within a few σ of an
+      ideal-sensor plant's, for several times the steps of the plain replay (figures:
+      docs/BENCHMARKS.md, "Figures behind design choices in the code").
     """
 
     state: dict[str, float | None]  # `Plant.reset` keywords: the window's first measured state
