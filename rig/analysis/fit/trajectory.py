@@ -339,9 +339,8 @@ def with_smooth_velocities(run: Run, window_s: float = SMOOTHING_WINDOW_S, lag_s
     by a millisecond or more, and starting from it biases every window during accelerations. The lag:
     the replay's semi-implicit Euler (θ ← θ + h·ω_new) holds a speed half a step h behind its position,
     so a window that starts with the speed at the position's instant runs h/2·α ahead all window long.
-    Every window starts so during accelerations, and a larger inertia hides it: J_l came out +0.18 %
-    (6σ) and J_m +0.13 % on noise-free data replayed at the step that made them; with the lag h/2,
-    −0.000 % and −0.015 %, and half the residual (with the 11-sample fit of then).
+    Every window starts so during accelerations, and a larger inertia hides it: the inertias came out
+    biased by several σ on noise-free data without the lag h/2 (docs/BENCHMARKS.md).
     """
     dt = float(np.median(np.diff(run.t)))
     length = _smoothing_length(window_s, dt)
@@ -371,10 +370,8 @@ def speed_bands(run: Run, window_s: float = SMOOTHING_WINDOW_S) -> dict[str, flo
     Position noise: a quantizer's, q/√12, when every step is a whole number of the smallest step q (an
     encoder's count); else white noise's, from the third differences' median absolute value (they are
     20σ² in variance and nearly free of the motion at 1 kHz). Seen through the local cubic's derivative
-    weights. On the independent generator's 8 s lab run (14-bit encoder, noisy output sensor), the
-    intervals stepped finely went 2,074 → 524 of 7,999 (the load's speed had flipped sign 1,061 times),
-    the steps of a residual 1.38 M → 0.93 M; the estimates moved by 0.3σ at most (J_m −0.089 → −0.066 %,
-    J_l +0.022 → −0.028 %, σ 0.13 / 0.15-0.18 %).
+    weights. On a noisy lab run it spared most of the finely stepped intervals and moved the estimates
+    by well under their σ (figures: docs/BENCHMARKS.md).
     """
     dt = float(np.median(np.diff(run.t)))
     length = _smoothing_length(window_s, dt)
@@ -672,9 +669,9 @@ def _jackknife_moves(
 
     The plain sandwich takes A⁻¹·J_wᵀr_w, but a window that carries a good share h of a parameter's
     information has pulled the fit towards itself, and its residual at the optimum holds only about
-    (1 − h) of its noise's score: on the bench campaign one window carries up to 15 % of J_m's and 19 %
-    of J_l's. Where leaving a window out leaves the rest singular (only it sees a parameter), its plain
-    score is taken: the data do not say more."""
+    (1 − h) of its noise's score, and on the bench campaign single windows carry a good share of the
+    inertias' information (docs/BENCHMARKS.md). Where leaving a window out leaves the rest singular
+    (only it sees a parameter), its plain score is taken: the data do not say more."""
     gram = np.zeros((len(scores), jac.shape[1], jac.shape[1]))
     np.add.at(gram, groups, jac[:, :, None] * jac[:, None, :])
     out = np.empty_like(scores)
