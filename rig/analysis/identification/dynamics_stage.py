@@ -538,9 +538,9 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
     the error's torque slows the motor through part of each cycle, and the window mean of K_s·A·sin(k·θ_m
     + φ) is far from zero (±140 mN·m at ±5 rad/s on the seed model, against f_cl = 300 mN·m) and odd in
     the direction, like f_cl. Held at the kinematic-error stage's A, that stage's error went into f_cl
-    (A −2.4 % gave f_cl −0.44 %, b_l +0.8 %); fitted, it costs f_cl a wider σ instead. J_l likewise:
-    the ringing load's J_l·Δω_l/T differs from window to window, and held at the FRF's J_l (0.6 % off)
-    it moved f_cl by +0.13 %; the windows see J_l to ~0.05 %.
+    and b_l; fitted, it costs f_cl a wider σ instead. J_l likewise: the ringing load's J_l·Δω_l/T
+    differs from window to window, held at the FRF's J_l it moved f_cl, and the windows see J_l far
+    better than the FRF (figures: docs/BENCHMARKS.md, "Figures behind design choices in the code").
 
     Windows where the load's speed comes within its noise of zero are left out (`sign_seen`), and the
     standard errors are the rows' sandwich (`nonlinear_fit(unequal_rows=True)`): the windows' noise
@@ -812,16 +812,15 @@ def kinematic_error(passes: Sequence[Run], model: HarmonicDriveModel) -> Solved:
     harmonic e^(jnΩt) of it by G(jnΩ), so θ_l − r·θ_m = c + Im(A·e^(jφ)·Σ_n w_n·G(jnΩ)·e^(jnΩt)) +
     r·Σ_n (G(jnΩ) − 1)·m_n·e^(jnΩt), with w_n and m_n the harmonics of the measured e^(jk·θ_m) and θ̃_m.
     Linear in A·e^(jφ): least squares, an offset per pass direction, with K_s, J_l, D_s, b_l from the
-    earlier stages. (Taking e^(jk·θ_m) through G(jΩ) whole put A 1.7 % low on the seed's 5 rad/s passes:
-    there the error's torque slows the motor through part of each cycle, and w_{±2}, w_{−1} are not
-    small; ideal sensors now +0.04 % at σ 0.13 %.)
+    earlier stages. (Taking e^(jk·θ_m) through G(jΩ) whole put A low on the seed's slow passes: there
+    the error's torque slows the motor through part of each cycle, and w_{±2}, w_{−1} are not small.)
 
     The waves are locked to θ_m's slow motion (`slow_motion`), not to a straight line, and include the
     sidebands n·k ± m of the friction's harmonics m: the speed drifts over a pass and ripples with the
     friction, and both moved the error's phase against waves that did not have them. What they left,
-    1.9e-5 rad with ideal sensors (10× the load sensor's noise), made σ(A) 1.0 % against a spread of
-    0.04 % over 20 noise seeds; with them 1.2e-5 rad (the load's free ringing at its antiresonance, which
-    no wave of the error's matches) and σ(A) 0.05 %.
+    well above the load sensor's noise, inflated σ(A) far beyond the spread over noise seeds; with them
+    what is left is the load's free ringing at its antiresonance, which no wave of the error's matches
+    (figures: docs/BENCHMARKS.md).
     """
     out = Solved()
     ke = model.kinematic_error

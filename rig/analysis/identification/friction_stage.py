@@ -76,8 +76,8 @@ def position_friction(passes: Sequence[Run], model: HarmonicDriveModel) -> Solve
     f = 1 + k_v·(v − v_c), E the rest of the model's moving friction. The experiment's quadratic +
     Fourier least squares gives C·f and P; C's coefficients are divided by f. a0 is held (a constant,
     like s3). The momentum terms matter: the velocity loop lets each friction harmonic ripple the speed
-    a little, and the torque that ripple takes came out in a_n, b_n (a4 +1.6 %, b4 +1.5 %, which moved
-    the velocity stage's k_v by +0.3 %); with them all ≤ 0.1 % (ideal and rig sensors).
+    a little, and without them the torque that ripple takes came out in a_n, b_n and moved the velocity
+    stage's k_v (figures: docs/BENCHMARKS.md, "Figures behind design choices in the code").
     """
     out = Solved()
     mf = model.motor_friction
@@ -167,13 +167,13 @@ def velocity_friction(
     TAPER_S): mean K_m·i_a = mean F_m(θ_m, ω_m) + r·mean F_l(ω_l) + r·τ_ext + (J_m·Δω_m + r·J_l·Δω_l)/T,
     F_m the model's moving friction at every instant (s1, s2, a, b held). The last term is the window's
     change of momentum, taken over the same stretch as the torques: fast windows ring, and the sampled
-    speeds at a window's ends (the momentum taken before) put s3 0.02 % low, which the load stage's
-    f_cl −0.44 % had hidden. The windows weigh alike: what is left at the truth is the current noise's.
+    speeds at a window's ends (the momentum taken before) put s3 low, which the load stage's f_cl
+    error had hidden. The windows weigh alike: what is left at the truth is the current noise's.
 
     `held`: the position stage's s1 and s2 with their covariance, carried into the standard errors
     (`carry_held`). The windows at each speed see their own stretch of θ_m, so an error of C(θ)'s
-    curvature reads as a change with speed: on 20 noise seeds s1, s2 held at the truth took k_v's
-    spread from 0.157 % to 0.061 %, and its σ (0.10 %) had not carried them.
+    curvature reads as a change with speed, a large share of k_v's spread over noise seeds that its σ
+    had not carried (docs/BENCHMARKS.md).
     """
     out = Solved()
     used = [part for part in parts if np.any(part.steady)]
@@ -200,8 +200,8 @@ def velocity_friction(
         measured = window_means(part, drive - mech.J_m * motor.accel) - mech.r * tau
         load_accel = window_means(part, mech.r * load.accel) if load is not None else np.zeros_like(tau)
         fixed.append((part, measured, load_accel, t_s))
-    # J_l, fitted with the windows and not reported (as in the stiffness stage): the FRF's is 0.6 % off,
-    # and r·J_l·Δω_l/T of the ringing load is up to 3 mN·m, which took k_v +0.8 % (6 σ) with it.
+    # J_l, fitted with the windows and not reported (as in the stiffness stage): the FRF's is too far
+    # off for r·J_l·Δω_l/T of the ringing load, which biased k_v by several σ (docs/BENCHMARKS.md).
     nuisance = ["J_l"] if any(load is not None for _, load in spans.values()) else []
     count = sum(int(np.count_nonzero(p.steady)) for p in used)
     scale_nm = 1e-5  # residuals in 10 µN·m: the unit of the fit's conditioning, not of its result
