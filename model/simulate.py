@@ -134,7 +134,7 @@ def simulate_stream(
     load = _as_profile(tau_ext)
     # A chunk is a whole number of sample periods, so every chunk starts on a sample. The inputs are
     # evaluated inside the compiled loop, so a chunk holds only its samples, and few long chunks keep
-    # the per-chunk work in Python (~0.5 ms: the file writer's checks) small beside the loop's.
+    # the per-chunk work in Python (the file writer's checks) small beside the loop's.
     chunk = decim * max(1, min(CHUNK_ROWS, CHUNK_STEPS // decim))
     drive_q, load_q = profile.vector(duration_s), load.vector(duration_s)  # a bad spec fails here
     meta = _meta(model, rate_hz, experiment="simulate", input=profile.spec, input_mode=mode, dt_s=dt_s)

@@ -219,10 +219,10 @@ def _mechanics(runs: list[Run], book: _Book) -> float:
 def _sharper_load_inertia(book: _Book, stiff: Solved) -> HarmonicDriveModel:
     """The model for the kinematic-error stage, with the stiffness windows' J_l where it is the sharper.
 
-    The stage passes the ripple through the load, G ∝ 1/J_l, so A carries J_l's error one to one: the
-    FRF's J_l was −0.6 % ± 0.9 % on noise seeds and A −0.7 % (5σ), while the windows, which fit J_l
-    alongside the stiffness as a metric, see it to ~0.05 % (measured). Only this stage takes it: J_l's
-    estimate stays the FRF's (the windows' is a by-product of another fit)."""
+    The stage passes the ripple through the load, G ∝ 1/J_l, so A carries J_l's error one to one, and
+    the windows, which fit J_l alongside the stiffness as a metric, see it far better than the FRF
+    (figures: docs/BENCHMARKS.md). Only this stage takes it: J_l's estimate stays the FRF's (the
+    windows' is a by-product of another fit)."""
     value, std = stiff.metrics.get("J_l"), stiff.metrics.get("J_l_std")
     held = book.estimates.get("J_l")
     if value is None or std is None or not math.isfinite(std) or value <= 0:

@@ -52,8 +52,8 @@ FLAG_MIN_DEG = 2.0
 OMEGA_FIT_SAMPLES = 16
 OMEGA_FIT_DEGREE = 4
 """The starting speeds: slopes at t = 0 of polynomials of this degree through the first samples of θ_m and
-θ_l (the load's speed is not measured; the drive's filtered speed lags); a quadratic over 8 samples was
-biased ~2 % by the curvature of an 11 Hz ring."""
+θ_l (the load's speed is not measured; the drive's filtered speed lags); a quadratic over fewer samples
+was biased by the curvature of the load's ring (docs/BENCHMARKS.md)."""
 BODE_TABLE = "frf_closed_loop"
 BODE_MAX_HZ = 10.0
 
