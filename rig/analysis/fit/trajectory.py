@@ -581,7 +581,7 @@ def prior_weight(problem: TrajectoryProblem, jac: np.ndarray, fun: np.ndarray) -
     s2 = float(data_fun @ data_fun) / max(m - jac.shape[1], 1)
     white = np.diag(np.linalg.pinv(data_jac.T @ data_jac)) * s2
     # The plain sandwich: c measures the windows' correlation, not how few windows see a parameter
-    # (with the jackknife c took in the leverage of parameters few windows see: λ 1.4–1.9× on the bench).
+    # (with the jackknife c took in the leverage of parameters few windows see; docs/BENCHMARKS.md).
     groups = problem.window_of_residual
     clustered = np.diag(window_robust_covariance(data_jac, data_fun, groups, s2, leave_one_out=False))
     ok = (white > 0) & np.isfinite(clustered) & (clustered > 0)

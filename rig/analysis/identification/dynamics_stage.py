@@ -122,9 +122,9 @@ def covariance(design: np.ndarray, residual: np.ndarray, serial: bool = False) -
 
     The sandwich sums each batch's score x·e before squaring, so it sees the residual's spectrum where
     the regressors live, both ways: slow ripple a fit leaves widens it, and the drive's current
-    chattering about its mean (lag-1 correlation −0.7 on the position passes, batch means' variance
-    0.0005 of white noise's) narrows it. The scalar batch-means factor it replaces could only widen:
-    it left s1 and s2 about 40× wider than their spread over 20 noise seeds (RMS z 0.03).
+    chattering about its mean (anticorrelated from sample to sample on the position passes) narrows it.
+    The scalar batch-means factor it replaces could only widen: it left s1 and s2 far wider than their
+    spread over noise seeds (figures: docs/BENCHMARKS.md).
     """
     norms = np.linalg.norm(design, axis=0)
     norms[norms == 0] = 1.0
