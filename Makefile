@@ -24,14 +24,14 @@ install: $(STAMP)
 # The main job on the embedded defaults: the characterization campaign on the simulated rig (each run
 # stored under $HDRIG_HOME, here results/store unless set, its line printed as it lands), then a fit of
 # the seed model to those runs with the validation report.
-HOME_DIR = $${HDRIG_HOME:-$(CURDIR)/$(OUT)/store}
+HOME_DIR = $${HDRIG_HOME:-$(abspath $(OUT))/store}
 run: install
 	@mkdir -p $(OUT)
 	HDRIG_HOME="$(HOME_DIR)" $(BIN)/hdrig run campaign --rig configs/rigs/sim.yaml
 	@echo "runs: $(HOME_DIR)/runs/<id>/ (data.parquet; artifacts/: tables, results.json, plots/)"
 	HDRIG_HOME="$(HOME_DIR)" $(BIN)/hdrig fit --data latest --model seed --out $(OUT)/fitted-seed.yaml \
 	  --report $(OUT)/fit-report -q
-	@echo "fitted model: $(CURDIR)/$(OUT)/fitted-seed.yaml; report: $(CURDIR)/$(OUT)/fit-report/report.md"
+	@echo "fitted model: $(abspath $(OUT))/fitted-seed.yaml; report: $(abspath $(OUT))/fit-report/report.md"
 
 # The REST service and browser page on the simulated rig paced to the wall clock (runs play live);
 # an admin key is printed on first start.
