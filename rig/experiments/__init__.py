@@ -13,6 +13,7 @@ from rig.experiments.position_friction import PositionFriction
 from rig.experiments.pulse import Pulse
 from rig.experiments.speed_sweep import SpeedSweep
 from rig.experiments.tracking import Ramp, Sine, Step
+from rig.experiments.warm_up import WarmUp
 
 CAMPAIGN_ORDER: tuple[str, ...] = (
     "speed-sweep",
@@ -38,6 +39,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         Chirp(),
         Compensation(),
         Endurance(),
+        WarmUp(),
     )
 }
 
