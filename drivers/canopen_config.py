@@ -97,6 +97,62 @@ class ScalingSettings(_Section):
     )
 
 
+class DriveEntry(_Section):
+    """One more drive on the bus (`canopen.drives`): its role and what differs from the section's."""
+
+    role: Literal["axis", "load"] = Field(description="`axis`: the drive under test; `load`: the dynamometer")
+    node_id: int = Field(ge=1, le=127, description="the drive's node id")
+    eds: str | None = Field(default=None, description="its EDS or DCF; default: the section's")
+    scaling: ScalingSettings | None = Field(default=None, description="its units; default: the section's")
+    drive_heartbeat_ms: int | None = Field(default=None, ge=1, le=65535, description="its heartbeat (0x1017)")
+    drive_heartbeat_timeout_ms: int | None = Field(default=None, gt=0, description="host side: lost after")
+    host_heartbeat_timeout_ms: int | None = Field(
+        default=None, ge=1, le=65535, description="its watchdog on the host (0x1016)"
+    )
+    current_limit_a: float | None = Field(
+        default=None, gt=0, description="load: its current saturation (0x6073), motor side [A]"
+    )
+    current_trip_a: float | None = Field(
+        default=None, gt=0, description="load: every drive quick-stops when its |current| exceeds this [A]"
+    )
+    velocity_limit_rad_s: float | None = Field(
+        default=None, gt=0, description="load: its speed saturation (0x607F/0x6080) [rad/s, its own shaft]"
+    )
+    velocity_trip_rad_s: float | None = Field(
+        default=None, gt=0, description="load: every drive quick-stops when its |speed| exceeds this [rad/s]"
+    )
+
+    @model_validator(mode="after")
+    def _load_limits(self) -> DriveEntry:
+        if self.role == "load":
+            missing = [
+                name
+                for name in (
+                    "current_limit_a",
+                    "current_trip_a",
+                    "velocity_limit_rad_s",
+                    "velocity_trip_rad_s",
+                )
+                if getattr(self, name) is None
+            ]
+            if missing:
+                raise ValueError(f"the load drive needs {', '.join(missing)}")
+            assert self.current_limit_a is not None and self.current_trip_a is not None
+            assert self.velocity_limit_rad_s is not None and self.velocity_trip_rad_s is not None
+            if self.current_limit_a >= self.current_trip_a:
+                raise ValueError("the load drive's current_limit_a must be below its current_trip_a")
+            if self.velocity_limit_rad_s >= self.velocity_trip_rad_s:
+                raise ValueError(
+                    "the load drive's velocity_limit_rad_s must be below its velocity_trip_rad_s"
+                )
+        return self
+
+    def drive_limits(self) -> DriveLimits:
+        """The saturation written to it (a load drive's)."""
+        assert self.current_limit_a is not None and self.velocity_limit_rad_s is not None
+        return DriveLimits(self.current_limit_a, self.velocity_limit_rad_s)
+
+
 class CanopenSettings(BusSettings):
     """A rig config's `canopen:` section: the bus, the node, its EDS, heartbeats, scaling."""
 
@@ -137,11 +193,26 @@ class CanopenSettings(BusSettings):
         " keeps its last command when this host hangs or dies; true: the lab accepts that on this bench",
     )
     scaling: ScalingSettings
+    drives: tuple[DriveEntry, ...] = Field(
+        default=(),
+        description="more drives on this bus, each with its role: `load` (a dynamometer drive at the"
+        " output, driven in torque mode), `axis` (fields overriding the section's own for the drive under"
+        " test); one SYNC for all, each with its own PDOs",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> CanopenSettings:
         if self.host_node_id == self.node_id:
             raise ValueError("host_node_id must differ from the drive's node_id")
+        roles = [d.role for d in self.drives]
+        for role in ("axis", "load"):
+            if roles.count(role) > 1:
+                raise ValueError(f"drives: more than one drive with role {role!r}")
+        ids = [self.role_settings("axis").node_id] + [d.node_id for d in self.drives if d.role == "load"]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"drives: node ids {sorted(ids)} are not all different")
+        if self.host_node_id in ids:
+            raise ValueError(f"host_node_id {self.host_node_id} is also a drive's node_id")
         if self.host_heartbeat_timeout_ms <= self.host_heartbeat_ms:
             raise ValueError("host_heartbeat_timeout_ms must be longer than host_heartbeat_ms")
         if self.drive_heartbeat_timeout_ms <= self.drive_heartbeat_ms:
@@ -158,6 +229,29 @@ class CanopenSettings(BusSettings):
         except ValidationError as exc:
             where = f"rig {config.name!r}: canopen"
             raise CanopenConfigError(f"{where} {describe_validation_error(exc)}") from None
+
+    @property
+    def load_entry(self) -> DriveEntry | None:
+        """The load drive's entry (its limits), None on a bench without one."""
+        return next((d for d in self.drives if d.role == "load"), None)
+
+    @property
+    def load(self) -> CanopenSettings | None:
+        """The load drive's settings (the bus's, its own node), None on a bench without one."""
+        return self.role_settings("load") if any(d.role == "load" for d in self.drives) else None
+
+    def role_settings(self, role: Literal["axis", "load"]) -> CanopenSettings:
+        """The settings of the drive with `role`: this section's fields, overridden by its `drives` entry
+        (the axis without an entry: the section itself)."""
+        entry = next((d for d in self.drives if d.role == role), None)
+        if entry is None:
+            if role == "load":
+                raise CanopenConfigError("canopen.drives: no drive with role 'load' on this bench")
+            return self
+        limits = {"role", "current_limit_a", "current_trip_a", "velocity_limit_rad_s", "velocity_trip_rad_s"}
+        update = entry.model_dump(exclude=limits, exclude_none=True)
+        update["scaling"] = entry.scaling if entry.scaling is not None else self.scaling
+        return self.model_copy(update={**update, "drives": ()})
 
     def eds_path(self) -> Path:
         """The EDS/DCF file: as given, or by name from configs/eds."""

@@ -180,12 +180,32 @@ class CanopenServo:
         self._last: Feedback | None = None
         self._cycled_t_s: float | None = None  # when the last cycle went out: the loop's "alive" stamp
         self._stalled_s = 0.0  # the longest gap between cycles of the powered drive beyond loop_timeout
+        # Several drives on one bus: the leader sends the one SYNC of each cycle, and its followers'
+        # RPDOs before it; a follower's own cycles are the leader's.
+        self.leader: CanopenServo | None = None
+        self.followers: list[CanopenServo] = []
+        self._staged: tuple[int, int, int] | None = (
+            None  # a follower's next RPDO 1: controlword, target, offset
+        )
+        self._last_target_raw = 0  # the leader's last target: held in its followers' walks (position modes)
 
     @classmethod
     def from_rig_config(cls, config: RigConfig) -> CanopenServo:
         """The servo a rig config's `canopen:` section describes, limited by its `control:` section."""
-        settings = CanopenSettings.from_rig_config(config)
+        settings = CanopenSettings.from_rig_config(config).role_settings("axis")
         return cls(settings, DriveLimits.from_rig_config(config), 1.0 / config.sample_rate_hz)
+
+    def follow(self, leader: CanopenServo) -> None:
+        """Share the `leader`'s bus (connected, not booted yet): it sends the one SYNC of every cycle,
+        this drive's RPDO just before it, and waits for both drives' TPDOs. Its host heartbeat vouches
+        for this drive too (the same loop cycles both)."""
+        if self.network is not None:
+            raise RuntimeError(f"node {self.settings.node_id}: already connected")
+        if leader.network is None:
+            raise RuntimeError(f"node {leader.settings.node_id}: connect the leader first")
+        self.leader = leader
+        leader.followers.append(self)
+        self._attach(leader.network)
 
     # --- connection and boot ----------------------------------------------------------------------
 
@@ -196,6 +216,9 @@ class CanopenServo:
         network = RecordedNetwork(bus if bus is not None else open_bus(self.settings))
         network.recorder.record_to(log_path)
         network.connect()
+        self._attach(network)
+
+    def _attach(self, network: RecordedNetwork) -> None:
         node = canopen.RemoteNode(self.settings.node_id, self.od)
         network.add_node(node)
         node.sdo.RESPONSE_TIMEOUT = self.settings.sdo_timeout_s
@@ -223,7 +246,7 @@ class CanopenServo:
                 " (0x100C/0x100D): the drive would run on if this host died; set"
                 " canopen.accept_drive_runs_on_if_host_dies: true only if the lab accepts that"
             )
-        if self._heartbeat is None:
+        if self._heartbeat is None and self.leader is None:
             # From a thread of this process: if it hangs or dies, the drive's consumer stops the drive.
             period_s = self.settings.host_heartbeat_ms / 1000.0
             cob_id = 0x700 + self.settings.host_node_id
@@ -287,8 +310,10 @@ class CanopenServo:
         self._write(mode_plan(self.od, self.settings.node_id, op_mode, offset))
         tpdo1, tpdo2 = self._tpdo
         self._plan = PdoPlan(rpdo_layout(self.od, op_mode, offset), tpdo1, tpdo2, self.settings.node_id)
-        self.bus_load = bus_load([self._plan], self.period_s, self.settings.bitrate)
-        check_bus_load(self.bus_load, self.settings.bus_load_max, f"node {node.id}")
+        self.bus_load = bus_load(self._bus_plans(), self.period_s, self.settings.bitrate)
+        ids = [str(plan.node_id) for plan in self._bus_plans()]
+        where = f"node {ids[0]}" if len(ids) == 1 else f"nodes {', '.join(ids)}"
+        check_bus_load(self.bus_load, self.settings.bus_load_max, where)
         logger.info("node %d: %s", node.id, self.bus_load)
         self._target_range = declared_range(od_variable(self.od, *TARGET_OBJECT[op_mode]))
         self._offset_range = declared_range(od_variable(self.od, *TORQUE_OFFSET)) if offset else (0, 0)
@@ -364,14 +389,21 @@ class CanopenServo:
         carry it, and sends NMT STOP when the drive does not confirm.
         """
         self._quick_stop_latched = True
+        followers = list(self.followers)
+        for follower in followers:  # every drive of the bus, in the same next SYNC
+            follower._quick_stop_latched = True
         confirmed = False
         try:
             confirmed = self._plan is not None and self._confirm_quick_stop()
         except Exception as exc:  # the defensive path must go on to NMT STOP whatever failed here
             logger.warning("quick stop: controlword not confirmed: %s", exc)
-        if not confirmed and self.node is not None:
+        stop = [self] if not confirmed else []
+        stop += [f for f in followers if f._last is not None and f._last.state == State.OPERATION_ENABLED]
+        for servo in stop:
+            if servo.node is None:
+                continue
             try:
-                self.node.nmt.send_command(NMT_STOP)
+                servo.node.nmt.send_command(NMT_STOP)
             except Exception as exc:  # a dead bus: nothing more this host can do
                 logger.error("quick stop: NMT STOP not sent: %s", exc)
 
@@ -494,24 +526,79 @@ class CanopenServo:
         self, controlword: int, target_raw: int, pace: bool, offset_raw: int = 0
     ) -> Feedback:
         """One RPDO 1 + SYNC and its answer. The torque offset (0 in walks and stops: the drive's own
-        loops alone) goes only where RPDO 1 maps it."""
+        loops alone) goes only where RPDO 1 maps it. A follower's goes out in its leader's next cycle,
+        the leader holding its own last command (its hold target, outside a segment)."""
+        leader = self.leader
+        if leader is not None:
+            self._staged = (controlword, target_raw, offset_raw)
+            if leader._plan is None:
+                raise RuntimeError(
+                    f"node {leader.settings.node_id}: configure the leader before its followers"
+                )
+            # The leader holds: its quick stop if latched, where it is in position modes, no torque or
+            # speed otherwise (a follower's walk comes between segments).
+            stop = leader._quick_stop_latched
+            held = leader._last_target_raw if leader.mode in POSITION_MODES else leader._hold_raw
+            leader._exchange(CONTROLWORD[Command.QUICK_STOP] if stop else leader._controlword, held)
+            last = self._last
+            assert last is not None  # the leader's exchange waited for this drive's answer
+            return last
         network, _node = self._connected()
-        plan = self._plan_or_raise()
         if pace:
             self._wait_for_period()
-        if self.mode == OperationMode.INTERPOLATED_POSITION and controlword & 0x0F == 0x0F:
-            controlword |= CW_ENABLE_IP_BIT  # interpolation runs while enabled
-        values = (controlword, target_raw, offset_raw)[: len(plan.rpdo.entries)]
-        payload = plan.rpdo.encode(values)
+        self._last_target_raw = target_raw
+        payload = self._rpdo_payload(controlword, target_raw, offset_raw)
+        plan = self._plan_or_raise()
+        sent = [(follower, follower._stage_payload()) for follower in self.followers]
         with self._rx:
             before = list(self._tpdo_counts)
         try:
             network.send_message(plan.rpdo_cob_id, payload)
+            for _follower, (cob_id, data, _counts) in sent:
+                if data is not None:
+                    network.send_message(cob_id, data)
             t_sync = time.monotonic()
             network.send_message(SYNC_COB_ID, b"")
         except can.CanError as exc:  # the bus failed under a working drive: a fault, not a setting
             raise CanopenServoError(f"node {self.settings.node_id}: cycle not sent: {exc}") from exc
         self._stamp_cycle(t_sync)
+        for follower, _sent in sent:
+            follower._stamp_cycle(t_sync)
+        feedback = self._answer(network, t_sync, before)
+        for follower, (_cob_id, data, counts) in sent:
+            if data is not None:
+                follower._answer(network, t_sync, counts)
+        return feedback
+
+    def _rpdo_payload(self, controlword: int, target_raw: int, offset_raw: int) -> bytes:
+        plan = self._plan_or_raise()
+        if self.mode == OperationMode.INTERPOLATED_POSITION and controlword & 0x0F == 0x0F:
+            controlword |= CW_ENABLE_IP_BIT  # interpolation runs while enabled
+        values = (controlword, target_raw, offset_raw)[: len(plan.rpdo.entries)]
+        return bytes(plan.rpdo.encode(values))
+
+    def _stage_payload(self) -> tuple[int, bytes | None, list[int]]:
+        """A follower's RPDO 1 for the leader's next SYNC (None before it is configured: it is not
+        waited for then), and its TPDO counts before it."""
+        with self._rx:
+            counts = list(self._tpdo_counts)
+        if self._plan is None:
+            return 0, None, counts
+        if self._staged is None:
+            self._staged = (self._controlword, self._hold_raw, 0)
+        controlword, target_raw, offset_raw = self._staged
+        if self._quick_stop_latched:
+            controlword = CONTROLWORD[Command.QUICK_STOP]
+        return self._plan.rpdo_cob_id, self._rpdo_payload(controlword, target_raw, offset_raw), counts
+
+    def stage(self, target: float) -> None:
+        """A follower's target (SI, as `cycle`) for the leader's next cycle; it holds it until staged
+        again. Its answer is `last_feedback` once the leader's cycle is back."""
+        self._plan_or_raise()
+        self._staged = (self._controlword, self._target_raw(target), 0)
+
+    def _answer(self, network: RecordedNetwork, t_sync: float, before: list[int]) -> Feedback:
+        """Wait for this drive's TPDOs answering the SYNC sent at `t_sync`."""
         with self._rx:
             answered = self._rx.wait_for(
                 lambda: all(c > b for c, b in zip(self._tpdo_counts, before, strict=True)),
@@ -533,6 +620,11 @@ class CanopenServo:
         self._last = feedback
         return feedback
 
+    def _bus_plans(self) -> list[PdoPlan]:
+        """The PDO plans of every drive on this bus configured so far (this one's included)."""
+        head = self.leader if self.leader is not None else self
+        return [s._plan for s in (head, *head.followers) if s._plan is not None]
+
     # --- the loop's watchdog ------------------------------------------------------------------------
 
     def _powered(self) -> bool:
@@ -541,7 +633,11 @@ class CanopenServo:
 
     def _loop_alive(self) -> bool:
         """The host heartbeat's gate: always open for an unpowered drive; for a powered one, only while
-        the control loop has sent a cycle within `loop_timeout_ms`."""
+        the control loop has sent a cycle within `loop_timeout_ms` (its followers' too: one heartbeat
+        vouches for every drive the loop cycles)."""
+        return self._own_loop_alive() and all(f._own_loop_alive() for f in self.followers)
+
+    def _own_loop_alive(self) -> bool:
         cycled = self._cycled_t_s
         if not self._powered() or cycled is None:
             return True
@@ -644,6 +740,12 @@ class CanopenServo:
             if frame is not None:
                 frame.stop()
         self._guard, self._heartbeat = None, None
+        if self.leader is not None:  # the bus is the leader's, closed with it
+            self.leader.followers.remove(self)
+            self.network, self.node, self.leader = None, None, None
+            return
+        for follower in list(self.followers):
+            follower.close()
         try:
             self.network.disconnect()  # the bus is shut down before canopen re-raises a receive error
         except can.CanError as exc:  # the bus died under a working drive: the cycle has already told

@@ -21,8 +21,17 @@
   torque constant, equal to K_b in SI units for a DC motor);
 - `i_cmd`: the current target in current mode (CST); in velocity and position modes the drive's
   own current command is not on the bus, and the current it reports stands in for it;
-- `setpoint`, `tau_ext`: as commanded. A bench has no load actuator, so a segment asking for a load
-  torque is refused (`load` is given only by the virtual backend, which sets the twin's load).
+- `setpoint`, `tau_ext`: as commanded. A bench without a load drive has no load actuator, so a segment
+  asking for a load torque is refused (`load` is given only by the virtual backend, which sets the
+  twin's load).
+
+A dynamometer bench (`canopen.drives` with a `load` drive, `drivers.canopen_config.DriveEntry`): the
+load drive shares the axis drive's bus and SYNC (`CanopenServo.follow`), runs in torque mode (CST, else
+profile torque), and is given −τ_ext each cycle (the model's τ_ext opposes the output's motion). The
+bus load of both drives' cyclic frames is checked at opening, at each drive's worst mapping. It is
+enabled after the axis and unloaded (torque 0, then disabled) before the axis disables, so it never
+turns a free arm. A fault, EMCY, lost heartbeat or a breach of its own trips (`current_trip_a`,
+`velocity_trip_rad_s`) on either drive quick-stops both in the next SYNC.
 
 Modes: each program in the best mode the drive offers (`drivers.drive_modes`: CST, CSV, CSP first);
 voltage is refused (CiA 402 has no voltage mode). A mode change between segments is disable →
@@ -67,8 +76,18 @@ from typing import Final
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from drivers.canopen_config import (
+    BusLoad,
+    CanopenConfigError,
+    DriveEntry,
+    PdoPlan,
+    bus_load,
+    check_bus_load,
+    rpdo_layout,
+    tpdo_layouts,
+)
 from drivers.canopen_servo import TORQUE_MODES, CanopenServo, CanopenServoError, DriveSettingError, Feedback
-from drivers.cia402 import State
+from drivers.cia402 import OperationMode, State
 from drivers.daq_protocol import STATUS_CAP_RANGE, STATUS_ENCODER_FAULT, DecoderStats
 from drivers.drive_modes import ModeChoice
 from drivers.serial_daq import DEFAULT_BAUDRATE, DaqError, SampleBlock, SerialDaq
@@ -300,6 +319,7 @@ class HardwareRig(Rig):
         daq: SerialDaq | None = None,
         load: Load | None = None,
         sample_clock: SampleClock | None = None,
+        load_servo: CanopenServo | None = None,
     ) -> None:
         super().__init__(config)
         # Load the compiled envelope check before the bus is up: compiling it on the first cycle would
@@ -307,12 +327,29 @@ class HardwareRig(Rig):
         envelope_breach(limits_vector(config.limits, 1.0), 0.0, 0.0, 0.0, 0.0, 0.0)
         self.servo = servo if servo is not None else CanopenServo.from_rig_config(config)
         self.daq = daq
+        self.load_entry: DriveEntry | None = None
+        self.load_servo: CanopenServo | None = None
+        """The load drive (the dynamometer), on the axis drive's bus and SYNC; None without one."""
+        self.bus_load: BusLoad | None = None
+        """The bus load of every drive's cyclic frames, each at its worst mapping (checked at opening)."""
         try:
+            self.load_entry = self.servo.settings.load_entry
+            if self.load_entry is not None:
+                load_settings = self.servo.settings.load
+                assert load_settings is not None
+                self.load_servo = load_servo or CanopenServo(
+                    load_settings, self.load_entry.drive_limits(), 1.0 / config.sample_rate_hz
+                )
             self.constants = constants or BenchConstants.from_rig_config(
                 config, self.servo.settings.scaling.torque_constant_nm_per_a
             )
             if self.servo.network is None:
                 self.servo.connect()
+            if self.load_servo is not None:
+                self.load_servo.follow(self.servo)
+                self.bus_load = worst_bus_load([self.servo, self.load_servo], self.period_s)
+                check_bus_load(self.bus_load, self.servo.settings.bus_load_max, f"rig {config.name!r}")
+                logger.info("rig %s: two drives: %s", config.name, self.bus_load)
             if self.daq is None and isinstance(self.constants.daq, DaqSettings):
                 settings = self.constants.daq
                 self.daq = SerialDaq(
@@ -326,9 +363,14 @@ class HardwareRig(Rig):
                 self.daq.set_rate(stream.rate_hz, samples_per_frame=stream.samples_per_frame)
                 self.daq.calibration()
             self.servo.boot()
+            if self.load_servo is not None:
+                self.load_servo.boot()
+                self._load_choice = self.load_servo.choose(ControlMode.CURRENT)
         except BaseException:
             self._release()
             raise
+        if self.load_servo is not None and load is None:
+            load = self._stage_load
         self._load = load
         self._sample_clock = sample_clock
         self._epoch_s = time.monotonic()
@@ -373,7 +415,7 @@ class HardwareRig(Rig):
         if self._load is None and np.any(np.asarray(segment.tau_ext) != 0.0):
             raise RigError(
                 f"rig {self.config.name!r}: segment {segment.label!r} asks for a load torque τ_ext, and"
-                " this bench has no load actuator: run it with tau_ext 0"
+                " this bench has no load actuator (a `load` drive in canopen.drives): run it with tau_ext 0"
             )
 
     def check_modes(self, modes: Collection[ControlMode]) -> list[str]:
@@ -406,13 +448,41 @@ class HardwareRig(Rig):
         if self.servo.mode is None:
             self.servo.configure(ControlMode.VELOCITY)  # holds still until a segment says otherwise
         self.servo.enable()
+        self._enable_load()
+
+    def _enable_load(self) -> None:
+        """The load drive after the axis (the arm is held): configured once in torque mode, no torque."""
+        load = self.load_servo
+        if load is None:
+            return
+        if load.mode is None:
+            load.configure(self._load_choice)
+        load.enable()
+        load.stage(0.0)
+
+    def _unload(self) -> None:
+        """The load drive before the axis disables: torque 0, then disabled (never turning a free arm)."""
+        load = self.load_servo
+        if load is None or load.mode is None:
+            return
+        load.stage(0.0)
+        load.disable()
 
     def _disable(self) -> None:
         try:
-            self.servo.disable()
+            try:
+                self._unload()
+            finally:
+                self.servo.disable()
         finally:
             self._stop_daq()
         self._raise_pending()
+
+    def _stage_load(self, tau_ext_nm: float) -> None:
+        """The load drive's torque for the next SYNC: −τ_ext, as its current target."""
+        load = self.load_servo
+        assert load is not None and load.scaling is not None
+        load.stage(-tau_ext_nm / load.scaling.torque_constant_nm_per_a)
 
     def _quick_stop(self) -> None:
         try:
@@ -428,6 +498,8 @@ class HardwareRig(Rig):
 
     def _faults(self) -> list[str]:
         faults = self.servo.faults()
+        if self.load_servo is not None:
+            faults += [f"load drive: {fault}" for fault in self.load_servo.faults()]
         if self.daq_tally.flagged:
             faults.append(f"DAQ: {self.daq_tally.flagged} samples with an encoder fault or a clipped θ_l")
         return faults
@@ -486,9 +558,11 @@ class HardwareRig(Rig):
         choice: ModeChoice = self.servo.choose_feedforward() if feedforward else self.servo.choose(mode)
         if self.servo.choice is not None and self.servo.choice == choice:
             return
+        self._unload()
         self.servo.disable()
         self.servo.configure(choice)
         self.servo.enable()
+        self._enable_load()
         self._host_loop_fresh = True
 
     def _cycle_through(
@@ -566,7 +640,33 @@ class HardwareRig(Rig):
                 faults = "; ".join(self.servo.faults()) or f"statusword 0x{feedback.statusword:04X}"
                 self._defer(f"drive left OPERATION ENABLED: {feedback.state} ({faults})")
                 break
+            if self.load_servo is not None and not self._stop_requested.is_set():
+                trouble = self._load_trouble()
+                if trouble is not None:
+                    self._defer(f"load drive (node {self.load_servo.settings.node_id}): {trouble}")
+                    break
         return rows[:done], t_sync[:done], code
+
+    def _load_trouble(self) -> str | None:
+        """What is wrong with the load drive after this cycle (its state, EMCYs, trips), None if nothing."""
+        load, entry = self.load_servo, self.load_entry
+        assert load is not None and entry is not None
+        answer = load.last_feedback
+        if answer is None or answer.state != State.OPERATION_ENABLED:
+            state = answer.state if answer is not None else "no answer"
+            return f"left OPERATION ENABLED: {state} ({'; '.join(load.faults()) or 'no fault reported'})"
+        faults = load.faults()
+        if faults:
+            return "; ".join(faults)
+        assert entry.current_trip_a is not None and entry.velocity_trip_rad_s is not None
+        if abs(answer.current_a) > entry.current_trip_a:
+            return f"|current| {abs(answer.current_a):.3g} A above current_trip_a {entry.current_trip_a:g} A"
+        if abs(answer.velocity_rad_s) > entry.velocity_trip_rad_s:
+            return (
+                f"|speed| {abs(answer.velocity_rad_s):.3g} rad/s above velocity_trip_rad_s"
+                f" {entry.velocity_trip_rad_s:g} rad/s"
+            )
+        return None
 
     def _feedforward_target(self, track: FeedForwardTrack, k: int) -> tuple[float, float]:
         """Cycle k of a track: (the servo's target, the torque offset [N·m]).
@@ -711,6 +811,30 @@ class HardwareRig(Rig):
         self.daq_tally.streams.append(self.daq.stop())
         self.daq_tally.add(self.daq.read_samples(timeout_s=0))  # the stream's tail: delivered, unused
         self._daq_samples = []
+
+
+def worst_bus_load(servos: list[CanopenServo], period_s: float) -> BusLoad:
+    """The bus load of the servos' cyclic frames, each at the largest RPDO 1 of the cyclic modes its
+    dictionary can map (a torque offset included), so that no later mode change goes over the limit."""
+    plans = []
+    for servo in servos:
+        tpdo1, tpdo2 = tpdo_layouts(servo.od)
+        layouts = []
+        for mode in (
+            OperationMode.CYCLIC_SYNC_TORQUE,
+            OperationMode.CYCLIC_SYNC_VELOCITY,
+            OperationMode.CYCLIC_SYNC_POSITION,
+        ):
+            for offset in (False, True):
+                try:
+                    layouts.append(rpdo_layout(servo.od, mode, offset))
+                except (CanopenConfigError, KeyError, ValueError):
+                    continue  # a mode or offset the drive cannot map: never sent
+        if layouts:
+            rpdo = max(layouts, key=lambda layout: layout.length)
+            plans.append(PdoPlan(rpdo, tpdo1, tpdo2, servo.settings.node_id))
+    bitrate = servos[0].settings.bitrate
+    return bus_load(plans, period_s, bitrate)
 
 
 def _interpolate(t: np.ndarray, t_samples: np.ndarray, values: np.ndarray) -> np.ndarray:

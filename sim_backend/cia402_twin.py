@@ -46,6 +46,7 @@ from drivers.canopen_config import (
     TPDO_COMM,
     TPDO_MAP,
     CanopenConfigError,
+    CanopenSettings,
     FactorGroup,
     is_mapping_object,
 )
@@ -76,6 +77,7 @@ from drivers.pdo_layout import PdoEntry, PdoLayout, od_variable
 from model.feedforward import FF_THETA, FF_TORQUE, N_FF_COLUMNS, FeedForwardTrack
 from model.params import HarmonicDriveModel
 from model.plant import Plant
+from model.registry import X
 from rig.config import RigConfig
 from rig.interface import SAMPLE_COLUMNS, ControlMode
 from rig.safety import (
@@ -154,9 +156,11 @@ class Cia402Twin:
         config: RigConfig,
         eds_path: Path = TWIN_EDS,
         rated_current_a: float = 5.0,
+        network: RecordedNetwork | None = None,
     ) -> None:
         """`bus` becomes the twin's (closed by `close()`). `rated_current_a` is used when the EDS gives
-        no motor rated current (0x6075)."""
+        no motor rated current (0x6075). With `network` (another twin's, on the same bus), the twin
+        shares it instead (`bus` unused) and takes SYNCs from its owner (`LoadTwin`)."""
         self.model = model
         self.config = config
         self.plant = Plant(model)
@@ -198,8 +202,12 @@ class Cia402Twin:
         self._supported_bits = 0
         self._torque_reference_permille = 0.0  # profile torque: the ramped target
         self._units: tuple[float, float, float] | None = None  # per motor rad, rad/s, rad/s²
+        self.followers: list[LoadTwin] = []
+        """Twins on this one's network that take its SYNCs: their torque before its step, their
+        answers after it."""
+        self._owns_network = network is None
 
-        self.network = RecordedNetwork(bus)  # its periodic heartbeat thread ends when stopped
+        self.network = network if network is not None else RecordedNetwork(bus)
         self._watch = _HeartbeatWatch(node_id, self._answer_guard)
         cast(list[can.Listener], self.network.listeners).append(self._watch)
         self.node = canopen.LocalNode(node_id, str(eds_path))
@@ -207,10 +215,12 @@ class Cia402Twin:
         self.node.add_write_callback(self._on_write)
         self.network.subscribe(0, self._on_nmt)
         self._sync_cob_id = self._get(0x1005) & 0x7FF if self._has(0x1005) else 0x080
-        self.network.subscribe(self._sync_cob_id, self._on_sync)
-        self.network.subscribe(LOAD_COB_ID, self._on_load)
+        if self._owns_network:
+            self.network.subscribe(self._sync_cob_id, self._on_sync)
+            self.network.subscribe(LOAD_COB_ID, self._on_load)
         self._reset_application()
-        self.network.connect()
+        if self._owns_network:
+            self.network.connect()
         self._boot()
         self._watch_thread = threading.Thread(
             target=self._watch_heartbeats, name=f"twin {node_id} heartbeat watch", daemon=True
@@ -451,6 +461,8 @@ class Cia402Twin:
                 finally:
                     self._applying_sync_rpdos = False
             self._sync_count += 1
+            for follower in self.followers:
+                follower.before_step()
             self._step(self._cycles_per_sync())
             self.measured.record(taken_s)
             if self.on_sample is not None:
@@ -458,6 +470,8 @@ class Cia402Twin:
             self._publish()
             if operational:
                 self._send_tpdos()
+        for follower in self.followers:
+            follower.after_step()
 
     def _on_load(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) == 8:
@@ -757,7 +771,8 @@ class Cia402Twin:
         self._closing.set()
         self._watch_thread.join()
         self.node.nmt.stop_heartbeat()
-        self.network.disconnect()
+        if self._owns_network:
+            self.network.disconnect()
 
     def __enter__(self) -> Cia402Twin:
         return self
@@ -768,3 +783,87 @@ class Cia402Twin:
 
 def _saturate(value: int, bound: int) -> int:
     return min(max(value, -bound - 1), bound)
+
+
+class LoadTwin(Cia402Twin):
+    """The load drive of a dynamometer bench: a CiA 402 drive in torque mode (CST or profile torque) on
+    the output shaft of the axis twin's plant, on the axis twin's network (the same bus).
+
+    Each SYNC the axis twin takes, this drive's torque T_load (its target, within its limits; none while
+    not OPERATION ENABLED, and none in quick stop: a load drive unloads) is applied to the plant's
+    output as τ_ext = −T_load (the model's τ_ext opposes the output's motion: J_l·dω_l/dt = T_s − τ_ext)
+    for the cycle, and its answer reports the output's angle and speed, its shaft being the output.
+    Its motor is direct-drive: `torque_constant_nm_per_a` turns its current into output torque.
+    """
+
+    def __init__(
+        self,
+        axis: Cia402Twin,
+        node_id: int,
+        eds_path: Path = TWIN_EDS,
+        torque_constant_nm_per_a: float = 1.0,
+        rated_current_a: float = 5.0,
+    ) -> None:
+        motor = axis.model.motor.model_copy(update={"K_m": torque_constant_nm_per_a})
+        model = axis.model.model_copy(update={"motor": motor})
+        self.axis = axis
+        self.torque_nm = 0.0
+        """The torque the drive applies to the output this cycle [N·m]."""
+        super().__init__(
+            cast(can.BusABC, None), node_id, model, axis.config, eds_path, rated_current_a, axis.network
+        )
+        axis.followers.append(self)
+
+    def inject_fault(self, code: int) -> None:
+        """FAULT now with the EMCY `code`, as the drive's own protection would (tests)."""
+        with self._lock:
+            self._fault(code)
+
+    def before_step(self) -> None:
+        """At the axis's SYNC, before its step: this drive's RPDOs, then its torque on the output."""
+        with self._lock:
+            operational = self.node.nmt.state == NMT_OPERATIONAL
+            if operational:
+                self._refresh_pdos()
+                pending, self._pending = self._pending, {}
+                for cob_id, payload in pending.items():
+                    self._apply_rpdo(self._rpdos[cob_id], payload)
+            self._sync_count += 1
+            torque = 0.0
+            if self.state == State.OPERATION_ENABLED:
+                mode, setpoint = self._command(1)
+                if mode == ControlMode.CURRENT:
+                    torque = float(setpoint[-1]) * self.model.motor.K_m
+            elif self.state == State.QUICK_STOP_ACTIVE:
+                self._enter(State.SWITCH_ON_DISABLED)  # unloaded at once: torque off
+            self.torque_nm = torque
+            self.axis.tau_ext_nm = -torque
+
+    def after_step(self) -> None:
+        """After the axis's step: the output's state as this drive's actual values, its TPDOs."""
+        with self._lock:
+            x = self.axis.plant.x
+            self.t_s = self.axis.t_s
+            self.last_sample = {
+                **dict.fromkeys(SAMPLE_COLUMNS, 0.0),
+                "t": self.t_s,
+                "theta_m": float(x[X.THETA_L]),
+                "omega_m": float(x[X.OMEGA_L]),
+                "i_a": self.torque_nm / self.model.motor.K_m,
+                "tau_ext": -self.torque_nm,
+            }
+            self._publish()
+            if self.node.nmt.state == NMT_OPERATIONAL:
+                self._send_tpdos()
+
+    def _step(self, n: int) -> None:  # the axis steps the plant
+        raise AssertionError("a load twin takes its SYNCs from its axis twin")
+
+
+def load_twin_for(twin: Cia402Twin, settings: CanopenSettings) -> LoadTwin | None:
+    """The load drive's twin on `twin`'s bus, where the `canopen:` section has a `load` drive."""
+    load = settings.load
+    if load is None:
+        return None
+    rated = load.scaling.rated_current_a or 5.0
+    return LoadTwin(twin, load.node_id, load.eds_path(), load.scaling.torque_constant_nm_per_a, rated)

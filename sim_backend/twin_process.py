@@ -40,7 +40,7 @@ from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
 from rig.interface import SAMPLE_COLUMNS
 from rig.realtime import freeze_built, quiet_heap
-from sim_backend.cia402_twin import Cia402Twin
+from sim_backend.cia402_twin import Cia402Twin, load_twin_for
 from sim_backend.daq_twin import DaqTwin
 
 logger = logging.getLogger(__name__)
@@ -113,10 +113,11 @@ def serve_twins(
     model = model if model is not None else load_model(config.model or "seed")
     stop = stop or threading.Event()
     hub = CanHub(port)
-    twin = daq = None
+    twin = daq = load_twin = None
     try:
         bus = hub.bus()
         twin = Cia402Twin(bus, settings.node_id, model, config, settings.eds_path())
+        load_twin = load_twin_for(twin, settings)  # on the same network: the one SYNC steps both
         bus.deliver_directly(twin.network.listeners)  # one thread wake-up less per frame to the drive
         if plant_log is not None:
             twin.on_sample = plant_log.write
@@ -133,6 +134,8 @@ def serve_twins(
     finally:
         if daq is not None:
             daq.close()
+        if load_twin is not None:
+            load_twin.close()
         if twin is not None:
             twin.close()
         hub.close()

@@ -58,7 +58,7 @@ from drivers.hardware_rig import (
 from drivers.serial_daq import SerialDaq
 from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
-from sim_backend.cia402_twin import LOAD_COB_ID, Cia402Twin
+from sim_backend.cia402_twin import LOAD_COB_ID, Cia402Twin, LoadTwin, load_twin_for
 from sim_backend.daq_twin import DaqTwin
 from sim_backend.twin_process import PlantLog, serve_twins, watchdog_grace_s
 
@@ -108,6 +108,8 @@ class VirtualCanRig(HardwareRig):
             daq=stream,
         )
         self.twin: Cia402Twin | None = None
+        self.load_twin: LoadTwin | None = None
+        """The load drive's twin (a dynamometer bench, `canopen.drives` with role `load`), in this process."""
         self.daq_twin: DaqTwin | None = None
         self.child: subprocess.Popen[str] | None = None
         """The twins' process, when the rig file says `twins: process`."""
@@ -132,6 +134,7 @@ class VirtualCanRig(HardwareRig):
                 interface=settings.interface, channel=settings.channel, bitrate=settings.bitrate
             )
             self.twin = Cia402Twin(open_bus(bus), settings.node_id, self.model, config, settings.eds_path())
+            self.load_twin = load_twin_for(self.twin, settings)
             self.daq_twin = DaqTwin.from_sensors(
                 self.twin.measured,
                 config.sensors,
@@ -146,7 +149,7 @@ class VirtualCanRig(HardwareRig):
                 servo_daq.close()
             self._close_twins()
             raise
-        self._open_drivers(config, constants, servo, servo_daq, self._set_load)
+        self._open_drivers(config, constants, servo, servo_daq, None if self.load_twin else self._set_load)
 
     def _open_drivers(
         self,
@@ -154,7 +157,7 @@ class VirtualCanRig(HardwareRig):
         constants: BenchConstants,
         servo: CanopenServo,
         daq: SerialDaq,
-        load: Callable[[float], None],
+        load: Callable[[float], None] | None,
     ) -> None:
         """The drivers composed into the rig, wherever the twins run; the twins closed if that fails."""
         try:
@@ -211,7 +214,8 @@ class VirtualCanRig(HardwareRig):
                 servo_daq.close()
             self._close_twins()
             raise
-        self._open_drivers(config, constants, servo, servo_daq, self._send_load)
+        has_load_drive = settings.load_entry is not None
+        self._open_drivers(config, constants, servo, servo_daq, None if has_load_drive else self._send_load)
 
     def _first_line(self, stdout: IO[str]) -> str:
         """The child's JSON line, within CHILD_START_TIMEOUT_S; its stderr in the error otherwise."""
@@ -288,8 +292,8 @@ class VirtualCanRig(HardwareRig):
             self._close_twins()
 
     def _close_twins(self) -> None:
-        daq_twin, twin, child = self.daq_twin, self.twin, self.child
-        self.daq_twin, self.twin, self.child = None, None, None
+        daq_twin, twin, child, load_twin = self.daq_twin, self.twin, self.child, self.load_twin
+        self.daq_twin, self.twin, self.child, self.load_twin = None, None, None, None
         try:
             if child is not None:
                 _end_child(child, self._child_grace_s)
@@ -302,8 +306,12 @@ class VirtualCanRig(HardwareRig):
             if daq_twin is not None:
                 daq_twin.close()
         finally:
-            if twin is not None:
-                twin.close()
+            try:
+                if load_twin is not None:
+                    load_twin.close()
+            finally:
+                if twin is not None:
+                    twin.close()
 
 
 def _end_child(child: subprocess.Popen[str], timeout_s: float) -> None:

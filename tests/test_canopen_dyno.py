@@ -1,0 +1,184 @@
+"""A dynamometer bench on one CAN bus (issue 26 items 1-3): the axis drive and a load drive in one rig
+file, both driven by the real CiA 402 driver, one SYNC for both, against an axis twin and a load twin.
+
+`configs/rigs/virtual-can-dyno.yaml` puts both twins in the child process; the in-process tests here use
+python-can's `virtual` interface on a channel of their own (never udp_multicast).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.canopen_config import CanopenConfigError, CanopenSettings
+from drivers.cia402 import EMCY_OVERCURRENT, State
+from drivers.hardware_rig import worst_bus_load
+from model.errors import UserInputError
+from rig.config import RIG_DIR, RigConfig, load_rig_config
+from rig.interface import ControlMode, RigFaultError, Segment
+from rig.runner import run_experiment
+from rig.store.runs import RunStore
+from sim_backend.virtual_bus import VirtualCanRig
+
+pytestmark = pytest.mark.usefixtures("quiet_heap")
+
+DYNO = RIG_DIR / "virtual-can-dyno.yaml"
+LOADS_NM = [0.0, 5.0, 10.0]
+SPEEDS_RAD_S = [5.0, 20.0]
+SLOPE_REL_TOL = 0.10  # issue 26: the friction-against-load slope within 10 % of the sim run's
+
+
+def in_process(config: RigConfig, **canopen: Any) -> RigConfig:
+    """The rig file with its twins in this process on a `virtual` channel (the rig adds a suffix)."""
+    extra = dict(config.extra)
+    extra["twins"] = "in-process"
+    extra["canopen"] = {**extra["canopen"], "interface": "virtual", "channel": "hdrig-dyno-test", **canopen}
+    return RigConfig.model_validate({**config.model_dump(), **extra})
+
+
+@pytest.fixture
+def dyno() -> Iterator[VirtualCanRig]:
+    rig = VirtualCanRig(in_process(load_rig_config(DYNO)))
+    rig.plant_log = []
+    try:
+        yield rig
+    finally:
+        rig.close()
+
+
+def test_the_rig_file_declares_an_axis_and_a_load_drive() -> None:
+    settings = CanopenSettings.from_rig_config(load_rig_config(DYNO))
+    load = settings.load
+    assert load is not None and settings.load_entry is not None
+    assert (settings.role_settings("axis").node_id, load.node_id) == (1, 2)
+    assert load.scaling.torque_constant_nm_per_a != settings.scaling.torque_constant_nm_per_a
+    assert load.channel == settings.channel and load.bitrate == settings.bitrate  # one bus
+
+
+def test_a_load_drive_without_its_trips_is_refused_in_one_line() -> None:
+    data = load_rig_config(DYNO).extra["canopen"]
+    entry = {k: v for k, v in data["drives"][0].items() if k != "current_trip_a"}
+    with pytest.raises(CanopenConfigError, match="needs current_trip_a") as info:
+        CanopenSettings.from_rig_config(
+            RigConfig.model_validate(
+                {**load_rig_config(DYNO).model_dump(), "canopen": {**data, "drives": [entry]}}
+            )
+        )
+    assert "\n" not in str(info.value)
+
+
+def test_two_drives_on_one_node_id_are_refused() -> None:
+    data = load_rig_config(DYNO).extra["canopen"]
+    entry = {**data["drives"][0], "node_id": data["node_id"]}
+    with pytest.raises(CanopenConfigError, match="node ids"):
+        CanopenSettings.from_rig_config(
+            RigConfig.model_validate(
+                {**load_rig_config(DYNO).model_dump(), "canopen": {**data, "drives": [entry]}}
+            )
+        )
+
+
+def test_the_bus_load_of_both_drives_is_computed_and_logged(
+    dyno: VirtualCanRig, caplog: pytest.LogCaptureFixture
+) -> None:
+    assert dyno.bus_load is not None
+    one = worst_bus_load([dyno.servo], dyno.period_s)
+    both = dyno.bus_load
+    # One SYNC for both: the second drive adds its RPDO and TPDOs, not another SYNC.
+    assert one.bits_per_cycle < both.bits_per_cycle < 2 * one.bits_per_cycle
+    logging.getLogger(__name__).info("two drives at 1 kHz, 1 Mbit/s: %s", both)
+    print(f"two drives: {both}")
+    assert 0.5 < both.share < 0.9
+
+
+def test_a_bus_too_slow_for_both_drives_is_refused_in_one_line() -> None:
+    config = in_process(load_rig_config(DYNO), bitrate=500_000)
+    with pytest.raises(UserInputError, match="bus_load_max") as info:
+        VirtualCanRig(config)
+    assert "\n" not in str(info.value)
+
+
+def test_the_load_drive_puts_the_segments_load_torque_on_the_output(dyno: VirtualCanRig) -> None:
+    dyno.enable()
+    tau = np.concatenate([np.zeros(50), np.full(150, 5.0)])
+    result = dyno.run_segment(
+        Segment(ControlMode.VELOCITY, np.full(200, 10.0), tau, "loaded"), lambda b: None
+    )
+    assert result.aborted is None
+    assert dyno.plant_log is not None
+    applied = np.array([sample["tau_ext"] for sample in dyno.plant_log])
+    # The torque staged before a cycle's SYNC acts in that very cycle.
+    np.testing.assert_allclose(applied[-200:], tau, atol=0.011)  # 1 ‰ of the load drive's 10 N·m
+    load = dyno.load_servo
+    assert load is not None and load.last_feedback is not None
+    assert load.last_feedback.torque_nm == pytest.approx(-5.0, abs=0.011)
+    dyno.disable()
+
+
+def test_disable_unloads_the_load_drive_before_the_axis(dyno: VirtualCanRig) -> None:
+    dyno.enable()
+    dyno.run_segment(
+        Segment(ControlMode.VELOCITY, np.full(50, 5.0), np.full(50, 3.0), "loaded"), lambda b: None
+    )
+    load_twin, twin = dyno.load_twin, dyno.twin
+    assert load_twin is not None and twin is not None
+    seen: list[tuple[State, State, float]] = []
+    twin.on_sample = lambda sample: seen.append((twin.state, load_twin.state, load_twin.torque_nm))
+    dyno.disable()
+    twin.on_sample = None
+    axis_off = next(i for i, (axis, _, _) in enumerate(seen) if axis != State.OPERATION_ENABLED)
+    load_off = next(i for i, (_, load, _) in enumerate(seen) if load != State.OPERATION_ENABLED)
+    assert load_off < axis_off
+    assert all(torque == 0.0 for _, _, torque in seen[load_off:])
+
+
+def test_a_fault_on_the_load_drive_stops_both_drives_within_one_cycle(dyno: VirtualCanRig) -> None:
+    dyno.enable()
+    load_twin, twin = dyno.load_twin, dyno.twin
+    assert load_twin is not None and twin is not None
+    n = 400
+    states: list[tuple[int, State, State]] = []
+    fault_at = 100
+
+    def watch(sample: dict[str, float]) -> None:
+        if twin.sync_count == fault_at:
+            load_twin.inject_fault(EMCY_OVERCURRENT)  # in the SYNC's own handling: its answer shows it
+        states.append((twin.sync_count, twin.state, load_twin.state))
+
+    start = twin.sync_count
+    fault_at = start + 100
+    twin.on_sample = watch
+    with pytest.raises(RigFaultError, match="load drive") as info:
+        dyno.run_segment(
+            Segment(ControlMode.VELOCITY, np.full(n, 20.0), np.full(n, 2.0), "fault"), lambda b: None
+        )
+    twin.on_sample = None
+    assert "EMCY 0x2310" in str(info.value) or "FAULT" in str(info.value)
+    after = [(count, axis) for count, axis, _load in states if count > fault_at]
+    # The SYNC after the one whose answer showed the fault carries the quick stop to both drives.
+    assert after and after[0][1] != State.OPERATION_ENABLED, after[:3]
+    assert load_twin.state == State.FAULT and load_twin.torque_nm == 0.0
+
+
+@pytest.fixture(scope="module")
+def load_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """`load-variation` through the real drivers on virtual-can-dyno (twins in the child process) and on
+    the sim rig, same loads and speeds."""
+    params = {"loads_nm": LOADS_NM, "speeds_rad_s": SPEEDS_RAD_S}
+    outcomes = {}
+    for name, config in (("dyno", load_rig_config(DYNO)), ("sim", load_rig_config("sim"))):
+        outcome = run_experiment("load-variation", config, params, RunStore(tmp_path_factory.mktemp(name)))
+        assert outcome.status == "complete", outcome.reason
+        outcomes[name] = outcome
+    return outcomes
+
+
+def test_load_variation_runs_through_both_drives_and_matches_the_sim_slope(load_runs: dict[str, Any]) -> None:
+    dyno = load_runs["dyno"].metrics["friction_per_load_nm_per_nm"]
+    sim = load_runs["sim"].metrics["friction_per_load_nm_per_nm"]
+    print(f"friction per load: virtual-can-dyno {dyno:.5g}, sim {sim:.5g} ({abs(dyno / sim - 1):.1%} apart)")
+    assert dyno == pytest.approx(sim, rel=SLOPE_REL_TOL)
