@@ -317,7 +317,10 @@ def _checkpoint(
     travel_half = 0.5 * float(np.sum(np.abs(run["omega_m"][span]))) / ctx.rate_hz
     name = prefix.rstrip("/")
     where = seen.get(name, {})
+    # The gear's temperature over the checkpoint (issue 27): `hdrig trend` normalizes the friction to T_ref.
+    temperature = {"temp_gear_c": float(np.mean(run["temp_gear"][span]))} if "temp_gear" in run else {}
     return {
+        **temperature,
         "index": int(name[len(CHECKPOINT_PREFIX) :]),
         "t_s": float(t_mid),
         "duty_cycles": float(where.get("duty_cycles", math.nan)),
