@@ -7,6 +7,7 @@ python-can's `virtual` interface on a channel of their own (never udp_multicast)
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Iterator
 from typing import Any
@@ -18,6 +19,7 @@ from drivers.canopen_config import CanopenConfigError, CanopenSettings
 from drivers.cia402 import EMCY_OVERCURRENT, State
 from drivers.hardware_rig import worst_bus_load
 from model.errors import UserInputError
+from model.params import load_model
 from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.interface import ControlMode, RigFaultError, Segment
 from rig.runner import run_experiment
@@ -29,6 +31,7 @@ pytestmark = pytest.mark.usefixtures("quiet_heap")
 DYNO = RIG_DIR / "virtual-can-dyno.yaml"
 LOADS_NM = [0.0, 5.0, 10.0]
 SPEEDS_RAD_S = [5.0, 20.0]
+LOAD_FRICTION_C_TS = 2e-3  # effect load_dependent_friction: motor friction + c_Ts·|T_s|
 SLOPE_REL_TOL = 0.10  # issue 26: the friction-against-load slope within 10 % of the sim run's
 
 
@@ -169,8 +172,16 @@ def load_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """`load-variation` through the real drivers on virtual-can-dyno (twins in the child process) and on
     the sim rig, same loads and speeds."""
     params = {"loads_nm": LOADS_NM, "speeds_rad_s": SPEEDS_RAD_S}
+    # The seed's friction does not follow the load (its slope is noise about 0): a friction that grows
+    # with the transmitted torque gives the slope to compare.
+    model = load_model("seed").to_dict()
+    model["load_dependent_friction"] = {"c_Ts": LOAD_FRICTION_C_TS}
+    model_file = tmp_path_factory.mktemp("model") / "seed-load-friction.json"
+    model_file.write_text(json.dumps(model))
     outcomes = {}
-    for name, config in (("dyno", load_rig_config(DYNO)), ("sim", load_rig_config("sim"))):
+    for name in ("dyno", "sim"):
+        config = load_rig_config(DYNO if name == "dyno" else "sim")
+        config = config.model_copy(update={"model": str(model_file)})
         outcome = run_experiment("load-variation", config, params, RunStore(tmp_path_factory.mktemp(name)))
         assert outcome.status == "complete", outcome.reason
         outcomes[name] = outcome
