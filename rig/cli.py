@@ -372,7 +372,8 @@ def cmd_runs_export(args: argparse.Namespace) -> int:
 def cmd_trend(args: argparse.Namespace) -> int:
     from rig.store.runs import RunStore
 
-    document = actions.trend(RunStore(), run_id=args.run, unit=args.unit, plot_dir=args.plot)
+    store = RunStore()
+    document = actions.trend(store, run_id=args.run, unit=args.unit, plot_dir=args.plot, model=args.model)
     if args.json:
         return _print_json(document)
     header = ("run", "#", "time h", "cycles", "F_c N·m", "b N·m·s/rad", "K_s N·m/rad")
@@ -383,6 +384,13 @@ def cmd_trend(args: argparse.Namespace) -> int:
             f" {p.coulomb_estimate:>9.5f} ±{p.coulomb_sigma:<7.5f}"
             f" {p.viscous_estimate:>10.3e} ±{p.viscous_sigma:<8.1e}"
             f" {p.stiffness_estimate:>8.1f} ±{p.stiffness_sigma:<6.1f}"
+            + (f" T_g {p.temp_gear_c:.1f} °C" if p.temp_gear_c is not None else "")
+            + (
+                f" F_c at {document.t_ref_c:g} °C {p.coulomb_normalized_estimate:.5f}"
+                f" ±{p.coulomb_normalized_sigma:.5f}"
+                if p.coulomb_normalized_estimate is not None
+                else ""
+            )
         )
     for path in document.plots:
         _say(f"plot: {path}")
@@ -852,6 +860,11 @@ def build_parser() -> argparse.ArgumentParser:
     which.add_argument("--unit", metavar="SERIAL", help="every run of the gear unit (the rig file's `unit:`)")
     trend.add_argument(
         "--plot", metavar="DIR", help="write friction_trend.png and stiffness_trend.png into DIR"
+    )
+    trend.add_argument(
+        "--model",
+        metavar="MODEL",
+        help="model file or preset whose thermal law brings each checkpoint's F_c to its T_ref (normalized)",
     )
 
     fit = _command(

@@ -664,11 +664,21 @@ def gaps_document(result: GapsResult, folder: Path | None = None) -> GapsDocumen
 
 
 def trend(
-    store: RunStore, run_id: str | None = None, unit: str | None = None, plot_dir: str | Path | None = None
+    store: RunStore,
+    run_id: str | None = None,
+    unit: str | None = None,
+    plot_dir: str | Path | None = None,
+    model: str | None = None,
 ) -> TrendDocument:
     """`hdrig trend`: the checkpoints of an endurance run, or of every run of a gear unit, against time
-    and duty cycles, with the online tracker's level; `plot_dir` also gets the plots."""
-    document = trend_document(store, run_id=run_id, unit=unit)
+    and duty cycles, with the online tracker's level; `plot_dir` also gets the plots. `model`: a model
+    file (or preset) whose `thermal` law brings each checkpoint's friction to its T_ref (issue 27)."""
+    law = None
+    if model is not None:
+        law = load_model(model).thermal
+        if law is None:
+            raise UserInputError(f"trend: model {model!r} has no thermal section (fit one from warm-up runs)")
+    document = trend_document(store, run_id=run_id, unit=unit, law=law)
     if plot_dir is not None:
         document.plots = [str(p) for p in plot_trend(document, Path(plot_dir))]
     return document

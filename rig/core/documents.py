@@ -232,6 +232,17 @@ class TrendPoint(Document):
     viscous_sigma: float = Field(description="its standard error [N·m·s/rad]")
     stiffness_estimate: float = Field(description="transmission stiffness K_s at the output [N·m/rad]")
     stiffness_sigma: float = Field(description="its standard error [N·m/rad]")
+    temp_gear_c: float | None = Field(
+        default=None, description="the gear's mean temperature over the checkpoint, if recorded [°C]"
+    )
+    coulomb_normalized_estimate: float | None = Field(
+        default=None,
+        description="F_c brought to the reference temperature by the thermal law (absent: no law or no"
+        " temperature) [N·m]",
+    )
+    coulomb_normalized_sigma: float | None = Field(
+        default=None, description="its standard error, the checkpoint's alone (the law's σ is common) [N·m]"
+    )
 
 
 class TrackPoint(Document):
@@ -249,4 +260,10 @@ class TrendDocument(Document):
     run_ids: list[str]
     points: list[TrendPoint]
     track: list[TrackPoint] = Field(default_factory=list, description="the online tracker's level")
+    t_ref_c: float | None = Field(
+        default=None, description="reference temperature the normalized friction is brought to [°C]"
+    )
+    beta_per_k: float | None = Field(
+        default=None, description="the thermal law's beta_T: friction × exp(−beta_T·(T_g − T_ref)) [1/K]"
+    )
     plots: list[str] = Field(default_factory=list, description="PNG files written (--plot DIR)")

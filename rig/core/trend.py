@@ -2,14 +2,21 @@
 for one run or every run of one gear unit (the rig file's `unit:`), with the online tracker's level beside.
 
 Reads only the catalog (table `checkpoints`) and each run's metadata (`observed`): no samples.
+
+Warm-up and wear (issue 27 item 6): friction falls as the gear's grease warms and rises as the gear wears,
+so a raw trend mixes the two. Given the friction's temperature law (a model's `thermal` section: friction
+× exp(−beta_T·(T_g − T_ref)), identified from `warm-up` runs), each checkpoint that recorded the gear's
+temperature is also brought to T_ref: F_c·exp(beta_T·(T_g − T_ref)), shown beside the raw F_c.
 """
 
 from __future__ import annotations
 
+import math
 from datetime import datetime
 from pathlib import Path
 
 from model.errors import UserInputError
+from model.params import Thermal
 from rig.core.documents import TrackPoint, TrendDocument, TrendPoint
 from rig.experiments.plots import new_figure, save_figure
 from rig.store.runs import RunStore
@@ -17,9 +24,21 @@ from rig.store.runs import RunStore
 _ESTIMATES = ("coulomb", "viscous", "stiffness")
 
 
-def trend_document(store: RunStore, run_id: str | None = None, unit: str | None = None) -> TrendDocument:
+def normalized_friction(
+    coulomb_nm: float, sigma_nm: float, temp_gear_c: float, law: Thermal
+) -> tuple[float, float]:
+    """A friction level measured at the gear temperature `temp_gear_c`, brought to the law's T_ref, with
+    its σ scaled alike: F·exp(beta_T·(T_g − T_ref)) [N·m]."""
+    factor = math.exp(law.beta_T * (temp_gear_c - law.T_ref))
+    return coulomb_nm * factor, sigma_nm * factor
+
+
+def trend_document(
+    store: RunStore, run_id: str | None = None, unit: str | None = None, law: Thermal | None = None
+) -> TrendDocument:
     """The checkpoints of one run (`run_id`) or of every run of a gear `unit`, oldest first; time is
-    counted from the first run's start, so runs of one unit line up on one axis."""
+    counted from the first run's start, so runs of one unit line up on one axis. With `law` (a model's
+    thermal section) each checkpoint with a gear temperature also gets its friction at the law's T_ref."""
     if (run_id is None) == (unit is None):
         raise UserInputError("trend: name one run (RUN) or one gear unit (--unit SERIAL)")
     rows = store.checkpoints(run_id=run_id, unit=unit)
@@ -41,6 +60,14 @@ def trend_document(store: RunStore, run_id: str | None = None, unit: str | None 
                 for t, level in zip(observed.get("t_s", []), observed.get("level_nm", []), strict=True)
             ]
         run_cycles = float(row.get("duty_cycles") or 0.0)
+        thermal: dict[str, float] = {}
+        if row.get("temp_gear_c") is not None:
+            thermal["temp_gear_c"] = float(row["temp_gear_c"])
+            if law is not None:
+                value, sigma = normalized_friction(
+                    float(row["coulomb_nm"]), float(row["coulomb_sigma_nm"]), thermal["temp_gear_c"], law
+                )
+                thermal |= {"coulomb_normalized_estimate": value, "coulomb_normalized_sigma": sigma}
         points.append(
             TrendPoint(
                 run_id=row["run_id"],
@@ -49,6 +76,7 @@ def trend_document(store: RunStore, run_id: str | None = None, unit: str | None 
                 duty_cycles=cycles_before + run_cycles,
                 travel_rad=float(row["travel_rad"]),
                 **{f"{name}_{kind}": float(row[key]) for name, kind, key in _fields()},
+                **thermal,
             )
         )
     return TrendDocument(
@@ -56,6 +84,8 @@ def trend_document(store: RunStore, run_id: str | None = None, unit: str | None 
         run_ids=list(dict.fromkeys(r["run_id"] for r in rows)),
         points=points,
         track=tracks,
+        t_ref_c=law.T_ref if law is not None else None,
+        beta_per_k=law.beta_T if law is not None else None,
     )
 
 
@@ -81,6 +111,16 @@ def plot_trend(document: TrendDocument, out_dir: Path) -> list[Path]:
         capsize=3,
         label="checkpoint fit F_c (±1σ)",
     )
+    normalized = [p for p in document.points if p.coulomb_normalized_estimate is not None]
+    if normalized:
+        ax.errorbar(
+            [p.time_s / 3600.0 for p in normalized],
+            [p.coulomb_normalized_estimate or math.nan for p in normalized],
+            yerr=[p.coulomb_normalized_sigma or math.nan for p in normalized],
+            fmt="s",
+            capsize=3,
+            label=f"F_c at T_ref = {document.t_ref_c:g} °C (thermal law, ±1σ)",
+        )
     if document.track:
         ax.plot(
             [p.time_s / 3600.0 for p in document.track],
