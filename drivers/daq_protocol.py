@@ -14,6 +14,7 @@ import numpy as np
 
 FRAME_DATA = 0x44  # 'D': samples
 FRAME_REPLY = 0x52  # 'R': the reply to a command line
+FRAME_ANALOG = 0x41  # 'A': samples with the analog channels (after `ANALOG 1`)
 VERSION = 1
 
 DATA_HEADER = struct.Struct("<BBIQIB")
@@ -26,6 +27,14 @@ CRC = struct.Struct("<I")
 SAMPLE_DTYPE = np.dtype([("encoder", "<i4"), ("cap", "<i4"), ("status", "u1")])
 """One sample, 9 bytes packed: encoder count since ZERO (i32, wraps), capacitive reading (i32), status."""
 
+ANALOG_CHANNELS = 4
+ANALOG_SAMPLE_DTYPE = np.dtype(
+    [("encoder", "<i4"), ("cap", "<i4"), ("status", "u1"), ("adc", "<i4", (ANALOG_CHANNELS,))]
+)
+"""A sample with the analog inputs, 25 bytes packed: SAMPLE_DTYPE's, then the four ADC readings (i32
+each; torque transducers, temperature probes: what each means is the rig file's `daq.channels`)."""
+_DTYPE_OF = {FRAME_DATA: SAMPLE_DTYPE, FRAME_ANALOG: ANALOG_SAMPLE_DTYPE}
+
 STATUS_ENCODER_FAULT = 0x01
 STATUS_CAP_RANGE = 0x02  # the capacitive reading is clipped to the i32 range
 STATUS_OVERRUN = 0x04  # the device dropped frames just before this one (its FIFO was full)
@@ -35,7 +44,7 @@ REORDER_WINDOW = 64
 """Frames this far behind the newest one may still be a late or repeated frame; farther back, the
 sequence restarted (a device reset)."""
 MAX_SAMPLES_PER_FRAME = 255
-MAX_FRAME_BYTES = DATA_HEADER.size + MAX_SAMPLES_PER_FRAME * SAMPLE_DTYPE.itemsize + CRC.size
+MAX_FRAME_BYTES = DATA_HEADER.size + MAX_SAMPLES_PER_FRAME * ANALOG_SAMPLE_DTYPE.itemsize + CRC.size
 MAX_ENCODED_BYTES = MAX_FRAME_BYTES + MAX_FRAME_BYTES // 254 + 1
 _MIN_FRAME_BYTES = REPLY_HEADER.size + CRC.size
 
@@ -109,7 +118,7 @@ class DataFrame:
     seq: int
     t0_us: int
     period_us: int
-    samples: np.ndarray  # SAMPLE_DTYPE
+    samples: np.ndarray  # SAMPLE_DTYPE, or ANALOG_SAMPLE_DTYPE in an analog frame
     first_index: int = 0
     """Sample number since START of the first sample, counting lost samples (set by `FrameDecoder`)."""
 
@@ -134,8 +143,9 @@ def encode_data_frame(seq: int, t0_us: int, period_us: int, samples: np.ndarray)
     n = len(samples)
     if not 1 <= n <= MAX_SAMPLES_PER_FRAME:
         raise ValueError(f"a frame holds 1..{MAX_SAMPLES_PER_FRAME} samples, not {n}")
-    header = DATA_HEADER.pack(FRAME_DATA, VERSION, seq % SEQ_MODULUS, t0_us, period_us, n)
-    return _seal(header + np.ascontiguousarray(samples, dtype=SAMPLE_DTYPE).tobytes())
+    kind = FRAME_ANALOG if samples.dtype == ANALOG_SAMPLE_DTYPE else FRAME_DATA
+    header = DATA_HEADER.pack(kind, VERSION, seq % SEQ_MODULUS, t0_us, period_us, n)
+    return _seal(header + np.ascontiguousarray(samples, dtype=_DTYPE_OF[kind]).tobytes())
 
 
 def encode_reply_frame(tag: int, text: str) -> bytes:
@@ -153,13 +163,14 @@ def decode_frame(raw: bytes) -> Frame:
     kind, version = body[0], body[1]
     if version != VERSION:
         raise FrameError(f"protocol version {version}, expected {VERSION}")
-    if kind == FRAME_DATA:
+    if kind in _DTYPE_OF:
+        dtype = _DTYPE_OF[kind]
         if len(body) < DATA_HEADER.size:
             raise FrameError("data frame shorter than its header")
         _, _, seq, t0_us, period_us, n = DATA_HEADER.unpack_from(body)
-        if n == 0 or period_us == 0 or len(body) != DATA_HEADER.size + n * SAMPLE_DTYPE.itemsize:
+        if n == 0 or period_us == 0 or len(body) != DATA_HEADER.size + n * dtype.itemsize:
             raise FrameError(f"data frame of {len(body)} bytes for {n} samples, period {period_us} µs")
-        samples = np.frombuffer(body, SAMPLE_DTYPE, count=n, offset=DATA_HEADER.size)
+        samples = np.frombuffer(body, dtype, count=n, offset=DATA_HEADER.size)
         return DataFrame(seq, t0_us, period_us, samples)
     if kind == FRAME_REPLY:
         (_, _, tag) = REPLY_HEADER.unpack_from(body)
@@ -263,7 +274,11 @@ class FrameDecoder:
     def _frame_at_end(block: bytes) -> tuple[int, Frame] | None:
         # A frame's first COBS block holds at least its type and version bytes (both nonzero).
         for i in range(1, len(block) - _MIN_FRAME_BYTES):
-            if block[i] >= 3 and block[i + 1] in (FRAME_DATA, FRAME_REPLY) and block[i + 2] == VERSION:
+            if (
+                block[i] >= 3
+                and block[i + 1] in (FRAME_DATA, FRAME_ANALOG, FRAME_REPLY)
+                and block[i + 2] == VERSION
+            ):
                 try:
                     return i, decode_frame(cobs_decode(block[i:]))
                 except FrameError:

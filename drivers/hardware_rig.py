@@ -74,7 +74,7 @@ from pathlib import Path
 from typing import Final
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from drivers.canopen_config import (
     BusLoad,
@@ -88,9 +88,16 @@ from drivers.canopen_config import (
 )
 from drivers.canopen_servo import TORQUE_MODES, CanopenServo, CanopenServoError, DriveSettingError, Feedback
 from drivers.cia402 import OperationMode, State
-from drivers.daq_protocol import STATUS_CAP_RANGE, STATUS_ENCODER_FAULT, DecoderStats
+from drivers.daq_protocol import ANALOG_CHANNELS, STATUS_CAP_RANGE, STATUS_ENCODER_FAULT, DecoderStats
 from drivers.drive_modes import ModeChoice
-from drivers.serial_daq import DEFAULT_BAUDRATE, DaqError, SampleBlock, SerialDaq
+from drivers.serial_daq import (
+    ANALOG_QUANTITIES,
+    DEFAULT_BAUDRATE,
+    AnalogChannel,
+    DaqError,
+    SampleBlock,
+    SerialDaq,
+)
 from model.errors import UserInputError, describe_validation_error
 from model.feedforward import FeedForwardTrack, loop_torque_nm
 from rig.config import RigConfig
@@ -158,6 +165,21 @@ class DaqStreamSettings(_Section):
         ge=0,
         description="refresh the clock-offset estimate this often while streaming; 0: never",
     )
+    channels: dict[str, AnalogChannel] = Field(
+        default_factory=dict,
+        description="the board's analog inputs by the run column they give (tau_in, tau_out, temp_gear,"
+        " temp_motor): torque transducers and temperature probes, each with its gain, offset and range",
+    )
+
+    @model_validator(mode="after")
+    def _channels(self) -> DaqStreamSettings:
+        unknown = sorted(set(self.channels) - set(ANALOG_QUANTITIES))
+        if unknown:
+            raise ValueError(f"channels {unknown} are not among {', '.join(ANALOG_QUANTITIES)}")
+        inputs = [channel.adc for channel in self.channels.values()]
+        if len(set(inputs)) != len(inputs):
+            raise ValueError(f"channels share an ADC input: {sorted(inputs)}")
+        return self
 
 
 class DaqSettings(DaqStreamSettings):
@@ -270,6 +292,8 @@ class DaqTally:
     flagged: int = 0
     """Samples with an encoder fault or a clipped capacitive reading."""
     extrapolated: int = 0
+    out_of_range: int = 0
+    """Analog readings (`daq.channels`) outside their sensor's range, recorded NaN."""
     """Rows whose θ_l was extrapolated past the newest sample rather than interpolated (paced)."""
     first_t_s: float = math.nan
     last_t_s: float = math.nan
@@ -362,6 +386,8 @@ class HardwareRig(Rig):
                 stream = self.constants.daq or DaqStreamSettings()
                 self.daq.set_rate(stream.rate_hz, samples_per_frame=stream.samples_per_frame)
                 self.daq.calibration()
+                if stream.channels:
+                    self.daq.set_analog(True)
             self.servo.boot()
             if self.load_servo is not None:
                 self.load_servo.boot()
@@ -378,7 +404,11 @@ class HardwareRig(Rig):
         self._pending_error: RigFaultError | None = None
         self._cycling: threading.Thread | None = None  # the thread inside _run_cycles, if any
         self._streaming = False
-        self._daq_samples: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # device time, θ_l, θ_m
+        # Device time, θ_l, θ_m, the analog readings (ANALOG_CHANNELS a row; none without channels).
+        self._daq_samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        self._channels = self.constants.daq.channels if self.constants.daq is not None else {}
+        self.extra_columns = tuple(self._channels)
+        self._analog_rows: dict[str, np.ndarray] = {}
         self._clock_stop = threading.Event()
         self._clock_thread: threading.Thread | None = None
         self.cycle_log: CycleLog | None = None
@@ -535,6 +565,7 @@ class HardwareRig(Rig):
         try:
             self._enter_mode(mode, feedforward is not None)
             rows, t_sync, code = self._cycle_through(setpoint, tau_ext, feedforward)
+            self._analog_rows = {name: np.empty(0) for name in self._channels}
             self._fill_theta_l(rows, t_sync)
         except DeviceFaultError as exc:
             self._quick_stop()
@@ -548,7 +579,9 @@ class HardwareRig(Rig):
             self._raise_pending()
         if len(rows):
             self.t_s = float(rows[-1, _COLUMN["t"]]) + self.period_s
-        return {name: rows[:, i] for i, name in enumerate(SAMPLE_COLUMNS)}, code
+        block = {name: rows[:, i] for i, name in enumerate(SAMPLE_COLUMNS)}
+        block.update(self._analog_rows)
+        return block, code
 
     def _enter_mode(self, mode: ControlMode, feedforward: bool = False) -> None:
         """Configure the drive for `mode` (with a track: `choose_feedforward`) if it plays another
@@ -738,41 +771,48 @@ class HardwareRig(Rig):
             self._take_daq(block if block is not None else self.daq.read_samples(timeout_s=0))
         else:
             self._take_daq(self.daq.read_until(t_last))
-        t_device, theta_l, theta_m = self._merged_daq()
+        t_device, theta_l, theta_m, adc = self._merged_daq()
         t_host = self.daq.host_time_s(t_device)  # one clock model for old and new samples alike
         stream = self.constants.daq or DaqStreamSettings()
         reach_s = EXTRAPOLATE_MAX_PERIODS * self.period_s + stream.samples_per_frame / stream.rate_hz
         if not len(t_host) or t_host[-1] < t_last - reach_s:
             self._take_daq(self.daq.read_until(t_last))  # too far behind to extrapolate: wait (or fail)
-            t_device, theta_l, theta_m = self._merged_daq()
+            t_device, theta_l, theta_m, adc = self._merged_daq()
             t_host = self.daq.host_time_s(t_device)
         self.daq_tally.extrapolated += int(np.count_nonzero(t_sync > t_host[-1]))
         rows[:, _COLUMN["theta_l"]] = _interpolate(t_sync, t_host, theta_l)
         keep = max(0, int(np.searchsorted(t_host, t_last, side="right")) - 1)
-        self._daq_samples = [(t_device[keep:], theta_l[keep:], theta_m[keep:])]
+        for name, channel in self._channels.items():
+            if adc.shape[1] != ANALOG_CHANNELS:
+                raise DaqError(f"DAQ: samples without the analog inputs that daq.channels.{name} reads")
+            value = channel.value(_interpolate(t_sync, t_host, adc[:, channel.adc]))
+            self.daq_tally.out_of_range += int(np.count_nonzero(np.isnan(value)))
+            self._analog_rows[name] = value
+        self._daq_samples = [(t_device[keep:], theta_l[keep:], theta_m[keep:], adc[keep:])]
         if log is not None:
             log.t_done_s[-1] = time.monotonic()  # the chunk's last cycle waited for the alignment
             # The log's own check, not the loop's work: after the cycle is done.
             log.daq_theta_m_rad.extend(_interpolate(t_sync, t_host, theta_m).tolist())
 
-    def _merged_daq(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The samples kept so far as one array each (device time, θ_l, θ_m), kept so."""
+    def _merged_daq(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The samples kept so far as one array each (device time, θ_l, θ_m, analog rows), kept so."""
         if not self._daq_samples:
-            return np.empty(0), np.empty(0), np.empty(0)
+            return np.empty(0), np.empty(0), np.empty(0), np.empty((0, 0))
         if len(self._daq_samples) > 1:
-            t_device, theta_l, theta_m = (
+            t_device, theta_l, theta_m, adc = (
                 np.concatenate(parts) for parts in zip(*self._daq_samples, strict=True)
             )
             if np.any(np.diff(t_device) <= 0):  # a late frame read after its successors: into place
                 t_device, keep = np.unique(t_device, return_index=True)
-                theta_l, theta_m = theta_l[keep], theta_m[keep]
-            self._daq_samples = [(t_device, theta_l, theta_m)]
+                theta_l, theta_m, adc = theta_l[keep], theta_m[keep], adc[keep]
+            self._daq_samples = [(t_device, theta_l, theta_m, adc)]
         return self._daq_samples[0]
 
     def _take_daq(self, block: SampleBlock) -> None:
         self.daq_tally.add(block)
         if len(block):
-            self._daq_samples.append((block.t_device_s, block.theta_l_rad, block.theta_m_rad))
+            adc = block.adc if block.adc is not None else np.empty((len(block), 0))
+            self._daq_samples.append((block.t_device_s, block.theta_l_rad, block.theta_m_rad, adc))
             self._merged_daq()  # each take, in the slack it is taken in: not all at the chunk's end
 
     def _start_daq(self) -> None:

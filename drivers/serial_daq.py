@@ -25,13 +25,16 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Protocol
+from typing import Final, Protocol
 
 import numpy as np
 import serial
 from numpy.typing import ArrayLike
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from drivers.daq_protocol import (
+    ANALOG_CHANNELS,
+    ANALOG_SAMPLE_DTYPE,
     ERR_BAD_ARGUMENT,
     MAX_TAG,
     SAMPLE_DTYPE,
@@ -147,6 +150,40 @@ class ClockModel:
         return last.offset_s + self._drift * (t - last.device_s)
 
 
+ANALOG_QUANTITIES: Final = ("tau_in", "tau_out", "temp_gear", "temp_motor")
+"""What the analog inputs may measure: the run format's optional columns (docs/INTERFACE.md), SI."""
+
+
+class AnalogChannel(BaseModel):
+    """One analog input of the DAQ (a rig file's `daq.channels.<column>`): value = gain·reading + offset,
+    valid within [min, max] (the sensor's range: a reading outside is recorded NaN and counted)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    adc: int = Field(ge=0, lt=ANALOG_CHANNELS, description="which ADC input of the board")
+    gain: float = Field(description="SI units per ADC count: N·m or °C per count")
+    offset: float = Field(default=0.0, description="the value at a reading of 0 [N·m or °C]")
+    min: float = Field(description="lowest valid value, the sensor's range [N·m or °C]")
+    max: float = Field(description="highest valid value [N·m or °C]")
+
+    @model_validator(mode="after")
+    def _sane(self) -> AnalogChannel:
+        if self.gain == 0 or not math.isfinite(self.gain):
+            raise ValueError("gain must be a finite nonzero number of units per count")
+        if self.max <= self.min:
+            raise ValueError("max must be above min")
+        return self
+
+    def value(self, reading: np.ndarray) -> np.ndarray:
+        """SI values of raw readings, NaN outside the range."""
+        value = self.gain * reading + self.offset
+        return np.where((value >= self.min) & (value <= self.max), value, np.nan)
+
+    def reading(self, value: float) -> float:
+        """The raw reading a value gives (the board's side: the twin's)."""
+        return (value - self.offset) / self.gain
+
+
 @dataclass(frozen=True)
 class SampleBlock:
     """Samples in order of device time; one entry per sample in every array."""
@@ -164,6 +201,9 @@ class SampleBlock:
     """Sample number since START, lost samples included: a jump by more than 1 marks a loss."""
     status: np.ndarray
     """Status bits (`drivers.daq_protocol.STATUS_*`)."""
+    adc: np.ndarray | None = None
+    """The analog inputs' raw readings, one row of ANALOG_CHANNELS per sample (after `set_analog(True)`);
+    None when the frames carried none. What a reading means is the rig file's (`daq.channels`)."""
 
     def __len__(self) -> int:
         return int(self.t_device_s.shape[0])
@@ -239,6 +279,10 @@ class SerialDaq:
         self.command(f"RATE {rate_hz:g}")
         if samples_per_frame is not None:
             self.command(f"BLOCK {samples_per_frame}")
+
+    def set_analog(self, on: bool) -> None:
+        """`ANALOG 1`: the samples carry the analog inputs too (`SampleBlock.adc`); `ANALOG 0`: not."""
+        self.command(f"ANALOG {int(on)}")
 
     def zero_encoder(self) -> None:
         """`ZERO`: the encoder count is 0 at the present position."""
@@ -421,7 +465,16 @@ class SerialDaq:
         t_device_s = (t0_us + within * period_us) * 1e-6
         # Joined as bytes: numpy's concatenate of structured arrays promotes their fields in Python,
         # which was most of this function's time.
-        samples = np.frombuffer(b"".join([f.samples.tobytes() for f in frames]), dtype=SAMPLE_DTYPE)
+        analog = all(f.samples.dtype == ANALOG_SAMPLE_DTYPE for f in frames)
+        if not analog:  # a stream switched between reads: the readings common to both
+            for i, f in enumerate(frames):
+                if f.samples.dtype == ANALOG_SAMPLE_DTYPE:
+                    plain = np.empty(len(f.samples), SAMPLE_DTYPE)
+                    for name in SAMPLE_DTYPE.names or ():
+                        plain[name] = f.samples[name]
+                    frames[i] = replace(f, samples=plain)
+        dtype = ANALOG_SAMPLE_DTYPE if analog else SAMPLE_DTYPE
+        samples = np.frombuffer(b"".join([f.samples.tobytes() for f in frames]), dtype=dtype)
         encoder = self._unwrap_encoder(samples["encoder"])
         calibration = self.calibration()
         return SampleBlock(
@@ -432,6 +485,7 @@ class SerialDaq:
             seq=np.repeat(np.array([f.seq for f in frames], dtype=np.uint32), counts),
             index=np.repeat(np.array([f.first_index for f in frames], dtype=np.int64), counts) + within,
             status=samples["status"].copy(),
+            adc=samples["adc"].reshape(-1, ANALOG_CHANNELS).astype(np.float64) if analog else None,
         )
 
     def _unwrap_encoder(self, raw: np.ndarray) -> np.ndarray:

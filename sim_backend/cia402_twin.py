@@ -89,7 +89,7 @@ from rig.safety import (
     NO_ABORT,
 )
 from sim_backend.daq_twin import PlantStateSource
-from sim_backend.simulated_drive import SimulatedDrive
+from sim_backend.simulated_drive import T_T_S, T_TEMP_GEAR, T_TEMP_MOTOR, SimulatedDrive
 
 logger = logging.getLogger(__name__)
 
@@ -105,6 +105,8 @@ EMCY_FOR_ABORT: Final = {
 """The emergency code a breach of the drive's envelope sends."""
 
 NMT_OPERATIONAL, NMT_STOPPED = "OPERATIONAL", "STOPPED"
+AMBIENT_C: Final = 25.0
+"""The temperatures a plant without a thermal section reads: a room's, steady [°C]."""
 LOAD_COB_ID: Final = 0x6E0
 """A sim-only frame (unused in CiA 301's predefined set): the load torque τ_ext [N·m] as a little-endian
 float64, applied from the next SYNC. A host in another process sets the load with it."""
@@ -165,6 +167,7 @@ class Cia402Twin:
         self.config = config
         self.plant = Plant(model)
         self.drive = SimulatedDrive(self.plant, config)
+        self.drive.record_truth(True)  # the shaft torque and temperatures the DAQ's analog inputs read
         self.measured = PlantStateSource(self.plant)
         """The plant's state after each SYNC, by the host time the SYNC was taken: a DAQ twin's source."""
         # Load the compiled loop now, not on the first SYNC: a master would wait for it and time out.
@@ -464,7 +467,7 @@ class Cia402Twin:
             for follower in self.followers:
                 follower.before_step()
             self._step(self._cycles_per_sync())
-            self.measured.record(taken_s)
+            self.measured.record(taken_s, self._truths())
             if self.on_sample is not None:
                 self.on_sample(self.last_sample)
             self._publish()
@@ -476,6 +479,20 @@ class Cia402Twin:
     def _on_load(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) == 8:
             self.tau_ext_nm = float(np.frombuffer(bytes(data), "<f8")[0])
+
+    def _truths(self) -> tuple[float, float, float, float]:
+        """What the DAQ's analog inputs measure (`daq_twin.TRUTHS`): the motor's torque K_m·i_a into the
+        gear (its rotor's inertia torque neglected) [N·m], the shaft torque T_s out of it [N·m], the gear
+        and winding temperatures [°C] (a model without `thermal` stays at AMBIENT_C)."""
+        truth = self.drive.truth
+        assert truth is not None  # kept on from the start, emptied here
+        if not truth:
+            return 0.0, 0.0, AMBIENT_C, AMBIENT_C
+        row = truth[-1][-1]
+        truth.clear()
+        tau_in = self.model.motor.K_m * self.last_sample.get("i_a", 0.0)
+        temps = (row[T_TEMP_GEAR], row[T_TEMP_MOTOR]) if self.model.thermal is not None else (AMBIENT_C,) * 2
+        return tau_in, float(row[T_T_S]), float(temps[0]), float(temps[1])
 
     def _cycles_per_sync(self) -> int:
         period_us = self._get_or(0x1006, 0)

@@ -22,12 +22,14 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Final, Literal, Protocol, TypeVar
 
 import numpy as np
 
 from drivers.daq_protocol import (
+    ANALOG_CHANNELS,
+    ANALOG_SAMPLE_DTYPE,
     ERR_BAD_ARGUMENT,
     ERR_BAD_LINE,
     ERR_STREAMING,
@@ -42,12 +44,16 @@ from drivers.daq_protocol import (
     encode_reply_frame,
     split_tag,
 )
+from drivers.serial_daq import AnalogChannel
 from model.plant import Plant
 from model.registry import X
 from rig.config import Sensors
 
 Source = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """True (θ_m, θ_l) [rad] at an array of device times [s] (one frame's samples at a time)."""
+
+AnalogSource = Callable[[list[float]], list[list[float]]]
+"""The analog inputs' raw readings (ANALOG_CHANNELS each) at a list of device times [s]."""
 
 IDEAL_ENCODER_COUNTS_PER_REV = 2**24
 """What `from_sensors` gives a board whose rig file says 0 (ideal): a board has whole counts."""
@@ -57,6 +63,9 @@ POLL_S = 0.02  # the device thread's longest sleep: how fast close() is noticed
 _I32 = 2**31
 _Times = TypeVar("_Times", float, np.ndarray)
 _SAMPLE = struct.Struct("<iiB")  # SAMPLE_DTYPE's bytes: encoder, cap, status
+_ANALOG_SAMPLE = struct.Struct(f"<iiB{ANALOG_CHANNELS}i")  # ANALOG_SAMPLE_DTYPE's
+TRUTHS: Final = ("tau_in", "tau_out", "temp_gear", "temp_motor")
+"""What a `PlantStateSource` keeps beside the angles, for the analog inputs (the run format's columns)."""
 
 
 def _yield_to_the_loop() -> None:
@@ -94,16 +103,27 @@ class PlantStateSource:
         self._t_s = [-math.inf] * self.HISTORY
         self._theta_m = [0.0] * self.HISTORY
         self._theta_l = [0.0] * self.HISTORY
+        self._truths: list[tuple[float, ...]] = [(math.nan,) * len(TRUTHS)] * self.HISTORY
         self._count = 0
 
-    def record(self, t_host_s: float) -> None:
-        """Keep the plant's present state as its state from `t_host_s` on (times never go back)."""
+    def record(self, t_host_s: float, truths: tuple[float, ...] | None = None) -> None:
+        """Keep the plant's present state as its state from `t_host_s` on (times never go back), with
+        the stepper's `truths` (TRUTHS' quantities, SI) for the analog inputs."""
         x = self.plant.x
         theta_m, theta_l = float(x[X.THETA_M]), float(x[X.THETA_L])
         with self._lock:
             i = self._count % self.HISTORY
             self._t_s[i], self._theta_m[i], self._theta_l[i] = t_host_s, theta_m, theta_l
+            if truths is not None:
+                self._truths[i] = truths
             self._count += 1
+
+    def truths(self, t_s: list[float]) -> list[tuple[float, ...]]:
+        """The TRUTHS recorded at or before each time (NaN before any record)."""
+        with self._lock:
+            if not self._count:
+                return [(math.nan,) * len(TRUTHS)] * len(t_s)
+            return [self._truths[self._slot(t)] for t in t_s]
 
     def __call__(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         times = t_s.tolist()
@@ -261,11 +281,16 @@ class DaqTwin:
         fifo_bytes: int = 65536,
         clock: Callable[[], float] = time.monotonic,
         source_clock: Literal["device", "host"] = "device",
+        analog: AnalogSource | None = None,
     ) -> None:
         """`clock_offset_s`: device clock minus `clock` (None: the device clock starts at 0 now, as a
         board's does at power-up); `drift_ppm`: how much faster the device clock runs; `source_clock`:
         the times `source` is asked at, the device's or `clock`'s (a `PlantStateSource`'s)."""
         self.source = source
+        self.analog_source = analog
+        """The analog inputs' readings; None: the board reads 0 on each."""
+        self.analog = False
+        """`ANALOG 1` was given: frames carry the analog inputs."""
         self._source_clock = source_clock
         self.encoder_counts_per_rev = encoder_counts_per_rev
         self.load_noise_rad = load_noise_rad
@@ -303,6 +328,7 @@ class DaqTwin:
             "TIME?": lambda args: str(self.device_us()),
             "ZERO": self._zero,
             "CAL?": self._cal,
+            "ANALOG": self._analog,
         }
 
         self._line: _Line = _PtyLine() if transport == "pty" else _SocketLine()
@@ -492,6 +518,13 @@ class DaqTwin:
         self.streaming = False
         return f"{self._seq} {self._seq * self.samples_per_frame}"
 
+    def _analog(self, args: list[str]) -> str:
+        self._not_streaming()
+        if args not in (["0"], ["1"]):
+            raise _RefusedError(ERR_BAD_ARGUMENT, "ANALOG takes 0 or 1")
+        self.analog = args == ["1"]
+        return ""
+
     def _zero(self, args: list[str]) -> str:
         self._not_streaming()
         theta_m, _ = self._source_at([self.device_us() * 1e-6])
@@ -542,7 +575,16 @@ class DaqTwin:
         # the cost, paid on the CPU that the 1 kHz loop waits for.
         n, period = self.samples_per_frame, self.period_us
         t0_us = self._first_us + seq * n * period
-        theta_m, theta_l = self._source_at([(t0_us + j * period) * 1e-6 for j in range(n)])
+        times = [(t0_us + j * period) * 1e-6 for j in range(n)]
+        theta_m, theta_l = self._source_at(times)
+        adc: list[list[int]] | None = None
+        if self.analog:
+            source_times = times if self._source_clock == "device" else [self.host_time_s(t) for t in times]
+            readings = self.analog_source(source_times) if self.analog_source is not None else None
+            adc = [
+                [_adc_count(r) for r in readings[j]] if readings is not None else [0] * ANALOG_CHANNELS
+                for j in range(n)
+            ]
         noise = self._rng.standard_normal(n).tolist()
         cap_per_rad = self.lever_radius_m * 1e6 / self.cap_um_per_count
         packed = bytearray()
@@ -556,9 +598,13 @@ class DaqTwin:
             if self._overrun and j == 0:
                 status |= STATUS_OVERRUN
             encoder = (counts + _I32) % (2 * _I32) - _I32  # the board's i32 counter wraps
-            packed += _SAMPLE.pack(encoder, int(min(max(cap, -_I32), _I32 - 1)), status)
+            cap_count = int(min(max(cap, -_I32), _I32 - 1))
+            if adc is None:
+                packed += _SAMPLE.pack(encoder, cap_count, status)
+            else:
+                packed += _ANALOG_SAMPLE.pack(encoder, cap_count, status, *adc[j])
         self._overrun = False
-        samples = np.frombuffer(packed, SAMPLE_DTYPE)
+        samples = np.frombuffer(packed, SAMPLE_DTYPE if adc is None else ANALOG_SAMPLE_DTYPE)
         frame = encode_data_frame(seq, t0_us, period, samples)
         while not self._line_events.empty():
             event = self._line_events.get()
@@ -569,3 +615,32 @@ class DaqTwin:
             else:
                 self._outbuf += event
         return frame
+
+
+def _adc_count(reading: float) -> int:
+    """A reading as the board's i32 converter gives it: to the nearest count, clipped (NaN: the
+    lowest count, as an open input reads)."""
+    if math.isnan(reading):
+        return -_I32
+    return (
+        int(min(max(round(reading), -_I32), _I32 - 1))
+        if math.isfinite(reading)
+        else (_I32 - 1 if reading > 0 else -_I32)
+    )
+
+
+def analog_readings(source: PlantStateSource, channels: Mapping[str, AnalogChannel]) -> AnalogSource:
+    """The board's analog inputs measuring `source`'s truths as the rig file's `daq.channels` say
+    (each channel's reading of its quantity; unused inputs read 0)."""
+    wired = [(channel.adc, TRUTHS.index(name), channel) for name, channel in channels.items()]
+
+    def read(t_s: list[float]) -> list[list[float]]:
+        rows = []
+        for truths in source.truths(t_s):
+            row = [0.0] * ANALOG_CHANNELS
+            for adc, k, channel in wired:
+                row[adc] = channel.reading(truths[k])
+            rows.append(row)
+        return rows
+
+    return read

@@ -35,13 +35,14 @@ from pathlib import Path
 from typing import Any, Final
 
 from drivers.canopen_config import CanopenSettings
+from drivers.serial_daq import AnalogChannel
 from drivers.tcp_can import CanHub
 from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
 from rig.interface import SAMPLE_COLUMNS
 from rig.realtime import freeze_built, quiet_heap
 from sim_backend.cia402_twin import Cia402Twin, load_twin_for
-from sim_backend.daq_twin import DaqTwin
+from sim_backend.daq_twin import DaqTwin, analog_readings
 
 logger = logging.getLogger(__name__)
 
@@ -122,12 +123,14 @@ def serve_twins(
         if plant_log is not None:
             twin.on_sample = plant_log.write
         line = dict(config.extra.get("daq") or {})  # the rig file's `daq:` (the virtual-can rig checked it)
+        channels = {name: AnalogChannel.model_validate(c) for name, c in (line.get("channels") or {}).items()}
         daq = DaqTwin.from_sensors(
             twin.measured,
             config.sensors,
             transport=line.get("transport", "pty"),
             drift_ppm=float(line.get("drift_ppm", 0.0)),
             source_clock="host",
+            analog=analog_readings(twin.measured, channels),
         )
         announce(json.dumps({"can": hub.channel, "daq": daq.url, "node_id": settings.node_id}))
         stop.wait()

@@ -59,7 +59,7 @@ from drivers.serial_daq import SerialDaq
 from model.params import HarmonicDriveModel, load_model
 from rig.config import RigConfig
 from sim_backend.cia402_twin import LOAD_COB_ID, Cia402Twin, LoadTwin, load_twin_for
-from sim_backend.daq_twin import DaqTwin
+from sim_backend.daq_twin import DaqTwin, analog_readings
 from sim_backend.twin_process import PlantLog, serve_twins, watchdog_grace_s
 
 TWINS: Final = ("in-process", "process")
@@ -141,6 +141,7 @@ class VirtualCanRig(HardwareRig):
                 transport=stream.transport,
                 drift_ppm=stream.drift_ppm,
                 source_clock="host",
+                analog=analog_readings(self.twin.measured, stream.channels),
             )
             servo_daq = SerialDaq(self.daq_twin.url, timeout_s=stream.timeout_s, clock=time.monotonic)
             servo = CanopenServo(settings, DriveLimits.from_rig_config(config), 1.0 / config.sample_rate_hz)

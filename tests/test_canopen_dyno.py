@@ -17,13 +17,15 @@ import pytest
 
 from drivers.canopen_config import CanopenConfigError, CanopenSettings
 from drivers.cia402 import EMCY_OVERCURRENT, State
-from drivers.hardware_rig import worst_bus_load
+from drivers.daq_protocol import ANALOG_SAMPLE_DTYPE, DataFrame, cobs_decode, decode_frame, encode_data_frame
+from drivers.hardware_rig import CycleLog, worst_bus_load
 from model.errors import UserInputError
 from model.params import load_model
 from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.interface import ControlMode, RigFaultError, Segment
 from rig.runner import run_experiment
 from rig.store.runs import RunStore
+from sim_backend.cia402_twin import AMBIENT_C
 from sim_backend.virtual_bus import VirtualCanRig
 
 pytestmark = pytest.mark.usefixtures("quiet_heap")
@@ -193,3 +195,80 @@ def test_load_variation_runs_through_both_drives_and_matches_the_sim_slope(load_
     sim = load_runs["sim"].metrics["friction_per_load_nm_per_nm"]
     print(f"friction per load: virtual-can-dyno {dyno:.5g}, sim {sim:.5g} ({abs(dyno / sim - 1):.1%} apart)")
     assert dyno == pytest.approx(sim, rel=SLOPE_REL_TOL)
+
+
+# --- the DAQ's analog inputs: torque transducers and temperature probes (issue 26 item 2) ----------------
+
+
+def test_an_analog_frame_round_trips_through_the_protocol() -> None:
+    samples = np.zeros(3, ANALOG_SAMPLE_DTYPE)
+    samples["encoder"] = [1, 2, 3]
+    samples["adc"] = [[10, -20, 30, 2**31 - 1], [0, 0, 0, 0], [-(2**31), 5, 6, 7]]
+    frame = decode_frame(cobs_decode(encode_data_frame(7, 1000, 500, samples)[:-1]))
+    assert isinstance(frame, DataFrame) and frame.samples.dtype == ANALOG_SAMPLE_DTYPE
+    np.testing.assert_array_equal(frame.samples["adc"], samples["adc"])
+
+
+@pytest.mark.parametrize(
+    ("channels", "match"),
+    [
+        ({"torque": {"adc": 0, "gain": 1.0, "min": -1.0, "max": 1.0}}, "not among"),
+        (
+            {
+                "tau_in": {"adc": 1, "gain": 1.0, "min": -1.0, "max": 1.0},
+                "tau_out": {"adc": 1, "gain": 1.0, "min": -1.0, "max": 1.0},
+            },
+            "share an ADC input",
+        ),
+        ({"tau_in": {"adc": 0, "gain": 0.0, "min": -1.0, "max": 1.0}}, "gain"),
+    ],
+)
+def test_a_bad_analog_channel_is_refused_in_one_line(channels: dict[str, Any], match: str) -> None:
+    config = load_rig_config(DYNO)
+    daq = {**config.extra["daq"], "channels": channels}
+    with pytest.raises(UserInputError, match=match) as info:
+        VirtualCanRig(RigConfig.model_validate({**config.model_dump(), "daq": daq}))
+    assert "\n" not in str(info.value)
+
+
+def loaded_blocks(rig: VirtualCanRig, load_nm: float) -> dict[str, np.ndarray]:
+    blocks: list[dict[str, np.ndarray]] = []
+    rig.cycle_log = CycleLog()
+    rig.enable()
+    n = 600
+    result = rig.run_segment(
+        Segment(ControlMode.VELOCITY, np.full(n, 10.0), load_nm, "loaded"), blocks.append
+    )
+    assert result.aborted is None
+    rig.disable()
+    return {name: np.concatenate([b[name] for b in blocks]) for name in blocks[0]}
+
+
+def test_the_transducers_and_probes_are_recorded_from_the_plant(dyno: VirtualCanRig) -> None:
+    assert dyno.extra_columns == ("tau_in", "tau_out", "temp_gear", "temp_motor")
+    run = loaded_blocks(dyno, 5.0)
+    assert dyno.twin is not None and dyno.cycle_log is not None
+    held = slice(len(run["t"]) // 2, None)
+    t_sync = dyno.cycle_log.arrays()["t_sync_s"][-len(run["t"]) :]
+    truth = np.array(dyno.twin.measured.truths(t_sync[held].tolist()))
+    # Means over the steady half: the DAQ's samples are aligned to the SYNCs within a cycle.
+    assert np.mean(run["tau_out"][held]) == pytest.approx(np.mean(truth[:, 1]), rel=0.01)
+    assert np.mean(run["tau_out"][held]) > 5.0  # the load drive's 5 N·m, and the output's friction
+    k_m = dyno.model.motor.K_m
+    assert np.mean(run["tau_in"][held]) == pytest.approx(k_m * np.mean(run["i_a"][held]), rel=0.02)
+    np.testing.assert_allclose(run["temp_gear"], AMBIENT_C, atol=1e-3)  # the seed has no thermal section
+    np.testing.assert_allclose(run["temp_motor"], AMBIENT_C, atol=1e-3)
+    assert dyno.daq_tally.out_of_range == 0
+
+
+def test_a_reading_outside_its_sensors_range_is_recorded_nan_and_counted() -> None:
+    config = in_process(load_rig_config(DYNO))
+    daq = dict(config.extra["daq"])
+    daq["channels"] = {**daq["channels"], "tau_out": {**daq["channels"]["tau_out"], "max": 1.0}}
+    rig = VirtualCanRig(RigConfig.model_validate({**config.model_dump(), "daq": daq}))
+    try:
+        run = loaded_blocks(rig, 5.0)
+    finally:
+        rig.close()
+    assert np.isnan(run["tau_out"][-100:]).all()
+    assert rig.daq_tally.out_of_range >= 100
