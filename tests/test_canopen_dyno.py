@@ -9,23 +9,27 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from collections.abc import Iterator
 from typing import Any
 
+import canopen
 import numpy as np
 import pytest
 
+from drivers.can_bus import open_bus
 from drivers.canopen_config import CanopenConfigError, CanopenSettings
-from drivers.cia402 import EMCY_OVERCURRENT, State
+from drivers.cia402 import EMCY_OVERCURRENT, State, decode_statusword
 from drivers.daq_protocol import ANALOG_SAMPLE_DTYPE, DataFrame, cobs_decode, decode_frame, encode_data_frame
 from drivers.hardware_rig import CycleLog, worst_bus_load
+from hdrig_testing.can_bus import bus_settings_for_test
 from model.errors import UserInputError
-from model.params import load_model
+from model.params import HarmonicDriveModel, load_model
 from rig.config import RIG_DIR, RigConfig, load_rig_config
 from rig.interface import ControlMode, RigFaultError, Segment
 from rig.runner import run_experiment
 from rig.store.runs import RunStore
-from sim_backend.cia402_twin import AMBIENT_C
+from sim_backend.cia402_twin import AMBIENT_C, TWIN_EDS, Cia402Twin, LoadTwin
 from sim_backend.virtual_bus import VirtualCanRig
 
 pytestmark = pytest.mark.usefixtures("quiet_heap")
@@ -272,3 +276,49 @@ def test_a_reading_outside_its_sensors_range_is_recorded_nan_and_counted() -> No
         rig.close()
     assert np.isnan(run["tau_out"][-100:]).all()
     assert rig.daq_tally.out_of_range >= 100
+
+
+# --- canopen's own master against both twins on one bus ----------------------------------------------
+
+
+def test_canopens_own_master_drives_the_load_twin_beside_the_axis_twin(
+    request: pytest.FixtureRequest, seed: HarmonicDriveModel
+) -> None:
+    """Software nobody here wrote as the master: canopen's BaseNode402 puts the load twin (node 2) in
+    CST with its own SYNC producer, beside the axis twin (node 1) on the same bus."""
+    bus = bus_settings_for_test(request.node.name)
+    twin = Cia402Twin(open_bus(bus), 1, seed, load_rig_config(RIG_DIR / "sim.yaml"))
+    load = LoadTwin(twin, 2, torque_constant_nm_per_a=2.0)
+    network = canopen.Network()
+    network.NOTIFIER_CYCLE = 0.05
+    network.connect(interface=bus.interface, channel=bus.channel)
+    axis_node = canopen.RemoteNode(1, str(TWIN_EDS))
+    load_node = canopen.BaseNode402(2, str(TWIN_EDS))
+    for node in (axis_node, load_node):
+        network.add_node(node)
+        node.sdo.RESPONSE_TIMEOUT = 2.0  # it reads its PDO layout over SDO: give it the time it needs
+    permille = 300
+    try:
+        load_node.nmt.state = "PRE-OPERATIONAL"
+        load_node.nmt.wait_for_heartbeat(timeout=1.0)
+        load_node.setup_402_state_machine()
+        load_node.nmt.state = "OPERATIONAL"
+        network.sync.start(0.01)  # once: SyncProducer.start() twice would leak a thread
+        try:
+            load_node.state = "OPERATION ENABLED"
+            load_node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
+            load_node.sdo[0x6071].raw = permille
+            deadline = time.monotonic() + 5.0  # 500 SYNCs at 10 ms: the torque is applied at the next one
+            while twin.tau_ext_nm == 0.0 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            axis_status = axis_node.sdo[0x6041].raw
+            state, mode = load_node.state, load_node.op_mode
+        finally:
+            network.sync.stop()
+    finally:
+        network.disconnect()
+        load.close()
+        twin.close()
+    assert (state, mode) == ("OPERATION ENABLED", "CYCLIC SYNCHRONOUS TORQUE")
+    assert twin.tau_ext_nm == pytest.approx(-permille / 1000 * load.rated_torque_nm)
+    assert decode_statusword(axis_status) == State.SWITCH_ON_DISABLED  # the axis answered beside it
