@@ -24,6 +24,11 @@ friction flips sign) becomes a short transition the loop can follow.
 Not inverted: transmission damping D_s (default 0, and not identifiable from the campaign), hysteresis,
 the bristle states of LuGre/Dahl (their steady friction is used), thermal drift (time zero).
 `friction_scale` multiplies every friction the plan predicts: the ±20 % runs of the experiment.
+
+Temperature (issue 27 item 7): the motor friction is planned at the thermal law's T_ref. With
+`temperature` and a model whose `thermal` section has a nonzero beta_T, the track carries the law, and
+a rig that measures the gear's temperature plays the friction columns at it as the run goes
+(`FeedForwardTrack.at_temperature`, `Rig.run_segment`); a rig without the probe plays them at T_ref.
 """
 
 from __future__ import annotations
@@ -134,9 +139,15 @@ def _rates(theta: np.ndarray, dt_s: float, jumps: np.ndarray) -> tuple[np.ndarra
 class Compensator:
     """Plans feed-forward tracks from one model; `friction_scale` scales every friction it predicts."""
 
-    def __init__(self, model: HarmonicDriveModel, friction_scale: float = 1.0) -> None:
+    def __init__(
+        self, model: HarmonicDriveModel, friction_scale: float = 1.0, temperature: bool = True
+    ) -> None:
         self.model = model
         self.friction_scale = friction_scale
+        law = model.thermal
+        self.thermal = (
+            (law.beta_T, law.T_ref) if temperature and law is not None and law.beta_T != 0.0 else None
+        )
         self.p, self.flags = kernel_vectors(model)
         ke = model.kinematic_error
         self.ke_A, self.ke_k, self.ke_phi = (ke.A, ke.k, ke.phi) if ke is not None else (0.0, 1.0, 0.0)
@@ -255,4 +266,4 @@ class Compensator:
         rows[:, FF_TORQUE] = 0.5 * (torque + np.append(torque[1:], torque[-1]))
         rows[:, FF_FRICTION] = friction
         rows[:, FF_LEVEL] = level
-        return FeedForwardTrack(rows, measured_band_rad_s, label)
+        return FeedForwardTrack(rows, measured_band_rad_s, label, self.thermal)

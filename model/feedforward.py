@@ -40,6 +40,9 @@ class FeedForwardTrack:
     rows: np.ndarray
     measured_band_rad_s: float = 0.0
     label: str = "compensation"
+    thermal: tuple[float, float] | None = None
+    """(beta_T [1/K], T_ref [°C]) when the friction columns are planned at T_ref and follow the gear's
+    measured temperature: the rig scales them by exp(−beta_T·(T_g − T_ref)) as it plays (`at_temperature`)."""
 
     def __post_init__(self) -> None:
         if self.rows.ndim != 2 or self.rows.shape[1] != N_FF_COLUMNS or not np.all(np.isfinite(self.rows)):
@@ -60,7 +63,17 @@ class FeedForwardTrack:
 
     def part(self, start: int, stop: int) -> FeedForwardTrack:
         """Cycles start..stop of the track (a segment of a longer plan, or a chunk of a segment)."""
-        return FeedForwardTrack(self.rows[start:stop], self.measured_band_rad_s, self.label)
+        return FeedForwardTrack(self.rows[start:stop], self.measured_band_rad_s, self.label, self.thermal)
+
+    def at_temperature(self, temp_gear_c: float) -> FeedForwardTrack:
+        """The track with its friction columns brought from T_ref to the gear's temperature (the thermal
+        law of docs/MODEL.md); itself when it carries no law."""
+        if self.thermal is None:
+            return self
+        beta_per_k, t_ref_c = self.thermal
+        rows = self.rows.copy()
+        rows[:, [FF_FRICTION, FF_LEVEL]] *= np.exp(-beta_per_k * (temp_gear_c - t_ref_c))
+        return FeedForwardTrack(rows, self.measured_band_rad_s, self.label, self.thermal)
 
 
 def min_measured_band_rad_s(

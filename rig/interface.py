@@ -197,17 +197,18 @@ class Rig(ABC):
                     )
                 else:  # only backends with supports_feedforward take it (check_segment saw to that)
                     with_track: Callable[..., tuple[Block, int]] = self._run_cycles
-                    block, code = with_track(
-                        segment.mode,
-                        segment.setpoint[done : done + n],
-                        tau[done : done + n],
-                        feedforward=segment.feedforward.part(done, done + n),
-                    )
+                    part = segment.feedforward.part(done, done + n)
+                    if self.temp_gear_c is not None:  # the friction at the gear's last measured temperature
+                        part = part.at_temperature(self.temp_gear_c)
+                    setpoint = segment.setpoint[done : done + n]
+                    block, code = with_track(segment.mode, setpoint, tau[done : done + n], feedforward=part)
             except DeviceFaultError as fault:
                 self._abort(SegmentResult(done, f"aborted: {fault}"))
                 raise
             got = len(block["t"])
             done += got
+            if got and "temp_gear" in block:
+                self.temp_gear_c = float(block["temp_gear"][-1])
             if got:
                 sink(block)
             if progress is not None:
@@ -296,6 +297,10 @@ class Rig(ABC):
     extra_columns: tuple[str, ...] = ()
     """Optional run-format columns this rig records beside SAMPLE_COLUMNS in every block (docs/INTERFACE.md:
     `temp_gear`, `temp_motor`, `tau_in`, `tau_out`), when it has the sensors."""
+
+    temp_gear_c: float | None = None
+    """The gear's last measured temperature (a rig recording `temp_gear`): a feed-forward track with a
+    thermal law plays its friction at it (`FeedForwardTrack.at_temperature`) [°C]."""
 
     def check_modes(self, modes: Collection[ControlMode]) -> list[str]:
         """Before anything moves: how this rig plays programs of `modes`, one line each (none: as

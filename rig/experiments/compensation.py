@@ -21,6 +21,12 @@ stick-slip amplitude (peak-to-peak of the detrended error, as `ramp` computes it
 `improvement_stick_slip`. A variant that tracks worse than no
 compensation is named in the notes.
 
+Temperature (issue 27 item 7): with a model whose `thermal` law has beta_T ≠ 0 the compensated tracks
+carry the law, and a rig that records `temp_gear` plays their friction at the gear's measured
+temperature (`model.compensator`); `compare_temperature` (default on) adds the variant
+`on_no_temperature`, the same feed-forward with the friction left at T_ref, and the metric
+`temperature_gain_<motion>`: its RMS error over that of `on` (> 1: the measured temperature helps).
+
 It needs a model file (`--set model=FILE`): on a simulated rig, one fitted (`hdrig fit`) on a campaign
 recorded on that rig, not the plant's own parameters. It is not part of the campaign for that reason.
 """
@@ -87,6 +93,11 @@ class CompensationParams(ExperimentParams):
         description="smoothing of the planned twist (kinks, friction flips) [s]",
     )
     hold_s: float = Field(default=0.5, ge=0.1, le=10, description="hold at the start before each variant [s]")
+    compare_temperature: bool = Field(
+        default=True,
+        description="with a model whose thermal law has beta_T ≠ 0: also play the compensation without the"
+        " measured temperature (friction at T_ref), variant on_no_temperature",
+    )
 
     @field_validator("model")
     @classmethod
@@ -105,12 +116,24 @@ class CompensationParams(ExperimentParams):
 
 @dataclass(frozen=True)
 class Variant:
-    tag: str  # off, on, friction_minus_20pct, ...
+    tag: str  # off, on, on_no_temperature, friction_minus_20pct, ...
     friction_scale: float | None  # None: no compensation
+    temperature: bool = True  # the track's friction follows the measured gear temperature (if any)
+
+
+NO_TEMPERATURE = "on_no_temperature"
+
+
+def has_thermal_law(params: CompensationParams) -> bool:
+    """Whether the model's friction follows the gear's temperature (a thermal section, beta_T ≠ 0)."""
+    law = load_model(params.model).thermal
+    return law is not None and law.beta_T != 0.0
 
 
 def variants(params: CompensationParams) -> list[Variant]:
     out = [Variant("off", None), Variant("on", 1.0)]
+    if params.compare_temperature and has_thermal_law(params):
+        out.append(Variant(NO_TEMPERATURE, 1.0, temperature=False))
     for error in params.friction_errors:
         sign = "minus" if error < 0 else "plus"
         out.append(Variant(f"friction_{sign}_{abs(error) * 100:.0f}pct", 1.0 + error))
@@ -137,7 +160,7 @@ def _track(
     ctx: RigContext,
 ) -> FeedForwardTrack:
     assert variant.friction_scale is not None
-    track = Compensator(model, variant.friction_scale).plan(
+    track = Compensator(model, variant.friction_scale, variant.temperature).plan(
         setpoints,
         1.0 / ctx.rate_hz,
         ctx.theta_m0,
@@ -150,7 +173,7 @@ def _track(
         return track
     level = float(np.max(track.rows[:, FF_LEVEL]))
     band = 2.0 * min_measured_band_rad_s(level, model.motor.K_m, ctx.config.control.velocity_kp)
-    return FeedForwardTrack(track.rows, band, variant.tag)
+    return FeedForwardTrack(track.rows, band, variant.tag, track.thermal)
 
 
 class Compensation(Experiment):
@@ -267,6 +290,9 @@ class Compensation(Experiment):
                 suffix = "" if variant.tag == "on" else f"_{variant.tag}"
                 if motion != "step":
                     metrics[f"improvement_{motion}{suffix}"] = off["rms"] / got["rms"]
+                if variant.tag == NO_TEMPERATURE:
+                    # What the measured temperature buys: the error without it over the error with it.
+                    metrics[f"temperature_gain_{motion}"] = got["rms"] / figures["on"]["rms"]
                 if got["rms"] > off["rms"]:
                     notes.append(
                         f"{motion}, {variant.tag}: RMS error {got['rms']:.4g} rad is worse than without"
