@@ -429,10 +429,22 @@ def cmd_fit(args: argparse.Namespace) -> int:
         note = f"  ({row.note})" if row.note and not row.identifiable else ""
         print(f"{name:<{width}}  {row.estimate:>12.6g}  {sigma:<16} {row.stage}{note}")
     print(f"fit error: {result.fit_error.before:.4g} → {result.fit_error.after:.4g}")
+    _print_lab_quantities(result.lab_quantities)
     print(f"model: {result.model_file}")
     if result.report is not None:
         print(f"report: {result.report}")
     return 0
+
+
+def _print_lab_quantities(quantities: dict[str, Any]) -> None:
+    """`fit`'s derived figures, the ones labs compare (Coulomb at rest, viscous slope, inertias...)."""
+    if not quantities:
+        return
+    print("numbers labs compare:")
+    width = max(len(name) for name in quantities)
+    for name, q in quantities.items():
+        sigma = f"± {q.sigma:.3g}" if q.sigma is not None else "not determined"
+        print(f"  {name:<{width}}  {q.value:>12.6g}  {sigma:<16} {q.unit}")
 
 
 def _fit_batch(args: argparse.Namespace) -> int:

@@ -113,3 +113,24 @@ def test_a_parameter_moved_but_not_determined_leaves_its_figures_undetermined_on
 def test_a_covariance_of_the_wrong_shape_is_refused_in_one_line():
     with pytest.raises(ValueError, match="not the square"):
         lab_quantities(load_model("seed"), {}, (["s3"], np.eye(2)))
+
+
+def test_fit_json_and_text_carry_the_figures_beside_the_parameters(capsys):
+    """`fit --json` adds `lab_quantities` (CONTRACT.md's fields unchanged); the text output prints them."""
+    from rig.analysis.identification.identify import Identification
+    from rig.cli import _print_lab_quantities
+    from rig.core.actions import fit_document
+
+    rows = [ParameterRow("s3", 0.072, 0.08, 0.001, True, "joint")]
+    document = fit_document(Identification(load_model("seed"), rows, 0.5, 0.1)).as_json()
+    assert {"parameters", "fit_error", "notes"} <= set(document)
+    assert document["parameters"]["s3"]["uncertainty"] == 0.001
+    level = document["lab_quantities"]["coulomb_at_rest_forward_Nm"]
+    assert level["value"] == pytest.approx(0.072 * (1 - 0.0004 * 0.8), rel=1e-12)
+    assert level["sigma"] == pytest.approx((1 - 0.0004 * 0.8) * 0.001, rel=1e-6)
+    assert level["unit"] == "N·m"
+    from rig.core.documents import FitDocument
+
+    _print_lab_quantities(FitDocument.model_validate(document).lab_quantities)
+    printed = capsys.readouterr().out
+    assert "coulomb_at_rest_forward_Nm" in printed and "inertia_output_side_kgm2" in printed

@@ -38,6 +38,7 @@ from rig.core.documents import (
     JobDocument,
     JobKind,
     JobStatus,
+    LabQuantityDocument,
     ModelSummary,
     PlannedRun,
     RunDocument,
@@ -610,6 +611,7 @@ def find_gaps(
 def fit_document(result: Identification, folder: Path | None = None) -> FitDocument:
     """The `fit --json` document of an identification."""
     from rig.analysis.identification.identify import FIT_METRIC  # numba, SciPy: paid by analyses only
+    from rig.analysis.identification.lab_quantities import fitted_sigmas, lab_quantities
 
     return FitDocument(
         model_file=str(result.model_file),
@@ -632,6 +634,10 @@ def fit_document(result: Identification, folder: Path | None = None) -> FitDocum
         held_out=result.held_out,
         inverse_model=result.inverse_model,
         imported=list(result.imported),
+        lab_quantities={
+            q.name: LabQuantityDocument(**q.as_json())
+            for q in lab_quantities(result.model, fitted_sigmas(result.parameters))
+        },
     )
 
 

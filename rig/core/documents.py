@@ -120,6 +120,13 @@ class FitError(Document):
     after: float
 
 
+class LabQuantityDocument(Document):
+    value: float
+    sigma: float | None = Field(description="1 σ; None when a parameter it depends on is not determined")
+    unit: str
+    meaning: str = Field(description="what it is, in the model's parameters")
+
+
 class FitDocument(Document):
     """`hdrig fit --json`; the result of a fit job."""
 
@@ -142,6 +149,11 @@ class FitDocument(Document):
     )
     imported: list[dict[str, Any]] = Field(
         default_factory=list, description="the column mappings (`--map`) the runs were read through"
+    )
+    lab_quantities: dict[str, LabQuantityDocument] = Field(
+        default_factory=dict,
+        description="the numbers labs compare (Coulomb at rest and viscous slope per direction, breakaway,"
+        " total inertia at each side, stiffness), derived from the parameters with σ by propagation",
     )
 
 
