@@ -1,7 +1,11 @@
 """`hdrig fit`: identify a model from runs — staged estimates, joint refinement, validation report.
 
-The CLI and the service call `identify`. Runs come from the store (by id; `latest` takes the newest
-complete run of each experiment) or from run files.
+The CLI and the service call `identify`, which composes three steps, each with a typed result:
+`starting_point` (the staged stages' estimates, `staged.staged_estimates`, or what plain runs' columns
+determine) gives a `Start`; `refine_jointly` (the joint refinement on trajectories, the model kept by
+held-out windows) gives a `Choice`; `_finish` validates and writes the report. Every step and stage says
+what it did as `pipeline.Note`s. Runs come from the store (by id; `latest` takes the newest complete run
+of each experiment) or from run files.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.fit.trajectory import CHANNELS, TrajectoryFit, TrajectoryProblem, fit_problem
 from rig.analysis.identification.column_stage import axis_figures, plan_for_plain_runs, seeded_model
+from rig.analysis.identification.pipeline import Note, note_lines
 from rig.analysis.identification.staged import REQUIRED_META, staged_estimates
 from rig.analysis.identification.validation import ValidationReport, validate
 from rig.experiments.base import segments_of
@@ -56,7 +61,7 @@ class Identification:
     fit_error_before: float
     fit_error_after: float
     validation: ValidationReport | None = None
-    notes: list[str] = field(default_factory=list)
+    said: list[Note] = field(default_factory=list)  # each step's and stage's notes
     model_file: Path | None = None
     report_file: Path | None = None
     held_out: dict[str, Any] | None = (
@@ -66,6 +71,11 @@ class Identification:
         None  # runs without metadata: the inverse-model fit beside the model
     )
     imported: list[dict[str, Any]] = field(default_factory=list)  # the runs' column mappings (`--map`)
+
+    @property
+    def notes(self) -> list[str]:
+        """The notes as the report and `--json` print them."""
+        return note_lines(self.said)
 
 
 def _joint_runs(runs: list[Run]) -> list[Run]:
@@ -94,6 +104,8 @@ def carries_stage_metadata(run: Run) -> bool:
 HOLDOUT_EVERY = 4
 """Every fourth shooting window is held out: the joint step fits on the others, and the model kept is
 the one best on these (start, staged, joint). The joint step carries the staged estimates as priors."""
+STAGED, COLUMNS, JOINT = "staged", "columns", "joint"
+"""`identify`'s own steps, as its notes name them: the staged start, the columns' start, the joint step."""
 
 
 def identify(
@@ -109,102 +121,61 @@ def identify(
     say = progress or (lambda label, fraction: None)
     if not runs:
         raise UserInputError("fit needs at least one run (--data)")
-    staged_runs = [r for r in runs if carries_stage_metadata(r)]
-    plain = [r for r in runs if not carries_stage_metadata(r)]
-    if staged_runs:
-        say("staged estimates", 0.05)
-        begun = _from_stages(staged_runs, plain, start)
-    else:
-        say("what the columns determine", 0.05)
-        begun = _from_columns(plain, start, joint)
-    rows, notes, staged_model, trajectory_runs = begun.rows, begun.notes, begun.model, begun.trajectory_runs
-    names, inverse = begun.names, begun.inverse
-    if not trajectory_runs:
-        notes.append(
-            f"no {'/'.join(JOINT_EXPERIMENTS)} run: no trajectory to refine on, fit error not measured"
-        )
-        return _finish(staged_model, list(rows.values()), math.nan, math.nan, notes, runs, report_dir, say)
-    problem = TrajectoryProblem(start, trajectory_runs, [], JOINT_WINDOW_S, 1e-4, fitted_channels(start))
-    train, _ = problem.split(HOLDOUT_EVERY)
-    is_held = problem.window_of_residual % HOLDOUT_EVERY == HOLDOUT_EVERY - 1
-    candidates = {"start": start, "staged": staged_model}
-    residual = {label: problem.residuals_of(m) for label, m in candidates.items()}
-    refined = None
-    priors: dict[str, tuple[float, float]] = {}
-    if joint and names:
-        say("joint refinement", 0.3)
-        # From whichever of the two is closer on the training windows: the staged values can be worse.
-        base = min(candidates, key=lambda label: _rms(residual[label][~is_held]))
-        priors = _priors(rows, names)
-        refined = fit_problem(train.for_parameters(candidates[base], names).with_priors(priors))
-        refined = _out_of_a_breakaway_minimum(train, refined, names, priors, notes)
-        notes += refined.notes + (
-            [f"joint refinement started from the {base} model"] if base != "staged" else []
-        )
-        candidates["joint"] = refined.model
-        residual["joint"] = problem.residuals_of(refined.model)
-    cost = {label: _rms(r) for label, r in residual.items()}
-    held = {label: _rms(r[is_held]) for label, r in residual.items()}
-    # Never worse than the start: only models no worse on every window compete, on the held-out ones.
-    fair = [label for label in candidates if cost[label] <= cost["start"]]
-    kept = min(fair, key=lambda label: held[label])
-    if kept == "joint" and refined is not None:
-        # Chosen on held-out windows; the values then use every window (a few breakaways more), kept only
-        # if that does not lose what was won: never worse than the start or the staged model held out.
-        polished = fit_problem(
-            problem.for_parameters(refined.model, names).with_priors(priors, refined.prior_weight),
-            max_evaluations=POLISH_EVALUATIONS,
-        )
-        again = problem.residuals_of(polished.model)
-        bar = min(held[label] for label in candidates if label != "joint")
-        if _rms(again) <= cost["joint"] and _rms(again[is_held]) <= bar:
-            refined, candidates["joint"] = polished, polished.model
-            cost["joint"], held["joint"] = _rms(again), _rms(again[is_held])
-            notes.append("joint refinement polished on every window after it won on the held-out ones")
-    verdicts = ", ".join(f"{label} {held[label]:.4g}" for label in candidates)
-    notes.append(f"held-out windows (1 in {HOLDOUT_EVERY}): {verdicts}; kept the {kept} model")
-    if refined is not None and kept != "joint" and "joint" not in fair:
-        notes.append(
-            f"the joint refinement is worse than the start on all windows ({cost['joint']:.4g} against"
-            f" {cost['start']:.4g}): {kept} values kept"
-        )
-    elif refined is not None and kept != "joint":
-        notes.append(
-            f"the joint refinement did not improve on the {kept} model on held-out windows"
-            f" ({held['joint']:.4g} against {held[kept]:.4g}): {kept} values kept"
-        )
-    if kept == "joint" and refined is not None:
-        _take_joint_values(rows, refined, priors, notes)
-    model = candidates[kept]
-    _rows_follow(rows, model, kept)
-    if inverse is not None:
-        inverse["trajectory"] = axis_figures(model, trajectory_runs)
-    result = _finish(model, list(rows.values()), cost["start"], cost[kept], notes, runs, report_dir, say)
-    result.held_out = {"every": HOLDOUT_EVERY, "errors": held, "kept": kept}
-    result.inverse_model = inverse
+    begun = starting_point(runs, start, joint, say)
+    if not begun.trajectory_runs:
+        text = f"no {'/'.join(JOINT_EXPERIMENTS)} run: no trajectory to refine on, fit error not measured"
+        begun.said.append(Note(JOINT, text, named=False))
+        rows = list(begun.rows.values())
+        return _finish(begun.model, rows, math.nan, math.nan, begun.said, runs, report_dir, say)
+    chosen = refine_jointly(start, begun, joint, say)
+    if chosen.kept == JOINT and chosen.refined is not None:
+        _take_joint_values(begun.rows, chosen.refined, chosen.priors, begun.said)
+    model = chosen.candidates[chosen.kept]
+    _rows_follow(begun.rows, model, chosen.kept)
+    if begun.inverse is not None:
+        begun.inverse["trajectory"] = axis_figures(model, begun.trajectory_runs)
+    before, after = chosen.cost["start"], chosen.cost[chosen.kept]
+    result = _finish(model, list(begun.rows.values()), before, after, begun.said, runs, report_dir, say)
+    result.held_out = {"every": HOLDOUT_EVERY, "errors": chosen.held, "kept": chosen.kept}
+    result.inverse_model = begun.inverse
     return result
 
 
 @dataclass
-class _Start:
+class Start:
     """Where the joint step starts: what the staged (or the columns') estimates left."""
 
     model: HarmonicDriveModel
     rows: dict[str, ParameterRow]
-    notes: list[str]
+    said: list[Note]
     trajectory_runs: list[Run]
     names: list[str]  # the parameters the joint step may move
     inverse: dict[str, Any] | None = None
 
 
-def _from_stages(staged_runs: list[Run], plain: list[Run], start: HarmonicDriveModel) -> _Start:
+def starting_point(runs: list[Run], start: HarmonicDriveModel, joint: bool, say: Progress) -> Start:
+    """The staged estimates of the runs that carry what the stages read; else what the columns determine."""
+    staged_runs = [r for r in runs if carries_stage_metadata(r)]
+    plain = [r for r in runs if not carries_stage_metadata(r)]
+    if staged_runs:
+        say("staged estimates", 0.05)
+        return _from_stages(staged_runs, plain, start)
+    say("what the columns determine", 0.05)
+    return _from_columns(plain, start, joint)
+
+
+def _from_stages(staged_runs: list[Run], plain: list[Run], start: HarmonicDriveModel) -> Start:
     """The staged estimates of runs that carry what each stage needs; `plain` runs join the trajectories."""
     staged = staged_estimates(staged_runs, start)
-    notes = list(staged.notes)
+    said = list(staged.said)
     if plain:
-        notes.append(
-            f"{len(plain)} run(s) without experiment metadata: used by the joint refinement's"
-            " trajectories only"
+        said.append(
+            Note(
+                STAGED,
+                f"{len(plain)} run(s) without experiment metadata: used by the joint refinement's"
+                " trajectories only",
+                named=False,
+            )
         )
     rows = {
         e.name: ParameterRow(
@@ -215,17 +186,20 @@ def _from_stages(staged_runs: list[Run], plain: list[Run], start: HarmonicDriveM
     staged_model = staged.model
     trajectory_runs = _joint_runs(staged_runs) + [r for r in plain if r.input_column is not None]
     names = [n for n in JOINT_CANDIDATES if n in rows and rows[n].identifiable]
-    return _Start(staged_model, rows, notes, trajectory_runs, names)
+    return Start(staged_model, rows, said, trajectory_runs, names)
 
 
-def _from_columns(plain: list[Run], start: HarmonicDriveModel, joint: bool) -> _Start:
+def _from_columns(plain: list[Run], start: HarmonicDriveModel, joint: bool) -> Start:
     """What the columns of runs without experiment metadata determine, the rest held."""
     inverse: dict[str, Any] | None = None
     plan = plan_for_plain_runs(plain, start)
-    notes = [
-        "no run carries experiment metadata: fitted by trajectory least squares on what the"
-        " columns determine",
-        *plan.notes,
+    said = [
+        Note(COLUMNS, text, named=False)
+        for text in (
+            "no run carries experiment metadata: fitted by trajectory least squares on what the"
+            " columns determine",
+            *plan.notes,
+        )
     ]
     rows = {
         name: ParameterRow(
@@ -255,24 +229,121 @@ def _from_columns(plain: list[Run], start: HarmonicDriveModel, joint: bool) -> _
         inverse = {"fit": plan.inverse.as_json()}
         seeded = seeded_model(plan.start, plan.inverse)
         if seeded is not None:
-            staged_model = _better_start(seeded, plan.start, trajectory_runs, notes)
-    return _Start(staged_model, rows, notes, trajectory_runs, names, inverse)
+            staged_model = _better_start(seeded, plan.start, trajectory_runs, said)
+    return Start(staged_model, rows, said, trajectory_runs, names, inverse)
+
+
+@dataclass
+class Choice:
+    """The joint step's outcome: the candidate models (start, staged, joint), their errors on every
+    window and on the held-out ones, and the one kept."""
+
+    candidates: dict[str, HarmonicDriveModel]
+    cost: dict[str, float]
+    held: dict[str, float]
+    kept: str
+    refined: TrajectoryFit | None  # the joint refinement, if it ran
+    priors: dict[str, tuple[float, float]]
+
+
+def refine_jointly(start: HarmonicDriveModel, begun: Start, joint: bool, say: Progress) -> Choice:
+    """The joint refinement (if `joint` and any parameter may move) from the closer of the start and the
+    staged model on the training windows; the model kept is the best on held-out windows of those no
+    worse than the start on every window."""
+    notes = begun.said
+    problem = TrajectoryProblem(
+        start, begun.trajectory_runs, [], JOINT_WINDOW_S, 1e-4, fitted_channels(start)
+    )
+    train, _ = problem.split(HOLDOUT_EVERY)
+    is_held = problem.window_of_residual % HOLDOUT_EVERY == HOLDOUT_EVERY - 1
+    candidates = {"start": start, STAGED: begun.model}
+    residual = {label: problem.residuals_of(m) for label, m in candidates.items()}
+    refined = None
+    priors: dict[str, tuple[float, float]] = {}
+    if joint and begun.names:
+        say("joint refinement", 0.3)
+        # From whichever of the two is closer on the training windows: the staged values can be worse.
+        base = min(candidates, key=lambda label: _rms(residual[label][~is_held]))
+        priors = _priors(begun.rows, begun.names)
+        refined = fit_problem(train.for_parameters(candidates[base], begun.names).with_priors(priors))
+        refined = _out_of_a_breakaway_minimum(train, refined, begun.names, priors, notes)
+        notes += [Note(JOINT, text, named=False) for text in refined.notes]
+        if base != STAGED:
+            notes.append(Note(JOINT, f"joint refinement started from the {base} model", named=False))
+        candidates[JOINT] = refined.model
+        residual[JOINT] = problem.residuals_of(refined.model)
+    cost = {label: _rms(r) for label, r in residual.items()}
+    held = {label: _rms(r[is_held]) for label, r in residual.items()}
+    # Never worse than the start: only models no worse on every window compete, on the held-out ones.
+    fair = [label for label in candidates if cost[label] <= cost["start"]]
+    chosen = Choice(candidates, cost, held, min(fair, key=lambda label: held[label]), refined, priors)
+    if chosen.kept == JOINT and refined is not None:
+        _polish(problem, is_held, chosen, refined, begun.names, notes)
+    _say_verdict(chosen, fair, notes)
+    return chosen
+
+
+def _polish(
+    problem: TrajectoryProblem,
+    is_held: np.ndarray,
+    chosen: Choice,
+    refined: TrajectoryFit,
+    names: list[str],
+    notes: list[Note],
+) -> None:
+    """Chosen on held-out windows, the joint values then use every window (a few breakaways more), kept
+    only if that does not lose what was won: never worse than the start or the staged model held out."""
+    polished = fit_problem(
+        problem.for_parameters(refined.model, names).with_priors(chosen.priors, refined.prior_weight),
+        max_evaluations=POLISH_EVALUATIONS,
+    )
+    again = problem.residuals_of(polished.model)
+    bar = min(chosen.held[label] for label in chosen.candidates if label != JOINT)
+    if _rms(again) <= chosen.cost[JOINT] and _rms(again[is_held]) <= bar:
+        chosen.refined, chosen.candidates[JOINT] = polished, polished.model
+        chosen.cost[JOINT], chosen.held[JOINT] = _rms(again), _rms(again[is_held])
+        notes.append(
+            Note(
+                JOINT,
+                "joint refinement polished on every window after it won on the held-out ones",
+                named=False,
+            )
+        )
+
+
+def _say_verdict(chosen: Choice, fair: list[str], notes: list[Note]) -> None:
+    """Which model the held-out windows kept, and why the joint refinement's was not, if it was not."""
+    kept, cost, held = chosen.kept, chosen.cost, chosen.held
+    verdicts = ", ".join(f"{label} {held[label]:.4g}" for label in chosen.candidates)
+    texts = [f"held-out windows (1 in {HOLDOUT_EVERY}): {verdicts}; kept the {kept} model"]
+    if chosen.refined is not None and kept != JOINT and JOINT not in fair:
+        texts.append(
+            f"the joint refinement is worse than the start on all windows ({cost[JOINT]:.4g} against"
+            f" {cost['start']:.4g}): {kept} values kept"
+        )
+    elif chosen.refined is not None and kept != JOINT:
+        texts.append(
+            f"the joint refinement did not improve on the {kept} model on held-out windows"
+            f" ({held[JOINT]:.4g} against {held[kept]:.4g}): {kept} values kept"
+        )
+    notes += [Note(JOINT, text, named=False) for text in texts]
 
 
 def _take_joint_values(
     rows: dict[str, ParameterRow],
     refined: TrajectoryFit,
     priors: dict[str, tuple[float, float]],
-    notes: list[str],
+    notes: list[Note],
 ) -> None:
     """The rows take the kept joint refinement's values, σ widened where the methods disagree."""
     scale = disagreement_scales(priors, refined.data_only)
     widened = [f"{name} ×{factor:.2g}" for name, factor in scale.items() if factor > 1.0]
     if widened:
-        notes.append(
+        text = (
             "σ widened where the staged estimate and the trajectories alone disagree beyond their σ"
             f" (Birge ratio): {', '.join(widened)}"
         )
+        notes.append(Note(JOINT, text, named=False))
     for p in refined.parameters:
         row = rows[p.name]
         row.stage = "trajectory" if row.stage == "trajectory" else row.stage + " + joint"
@@ -319,7 +390,7 @@ def _out_of_a_breakaway_minimum(
     refined: TrajectoryFit,
     names: list[str],
     priors: dict[str, tuple[float, float]],
-    notes: list[str],
+    notes: list[Note],
 ) -> TrajectoryFit:
     """The fit again from a breakaway level whose cost is lower, when there is one.
 
@@ -349,10 +420,11 @@ def _out_of_a_breakaway_minimum(
     again = fit_problem(problem.for_parameters(best, names).with_priors(priors))
     if again.cost_after >= refined.cost_after:
         return refined
-    notes.append(
+    text = (
         f"{name} {level:.4g} was a local minimum (training RMS {refined.cost_after:.4g}): fitted again from"
         f" {get_values(best, [name])[name]:.4g}, RMS {again.cost_after:.4g}"
     )
+    notes.append(Note(JOINT, text, named=False))
     return again
 
 
@@ -398,19 +470,17 @@ def disagreement_scales(
 
 
 def _better_start(
-    seeded: HarmonicDriveModel, start: HarmonicDriveModel, runs: list[Run], notes: list[str]
+    seeded: HarmonicDriveModel, start: HarmonicDriveModel, runs: list[Run], notes: list[Note]
 ) -> HarmonicDriveModel:
     """The inverse-model start if its trajectories are closer to the data than the start model's."""
     problem = TrajectoryProblem(start, runs, [], JOINT_WINDOW_S, 1e-4)
     mine, theirs = _rms(problem.residuals_of(start)), _rms(problem.residuals_of(seeded))
     if theirs < mine:
-        notes.append(
-            f"trajectory fit starts from the inverse-model estimates (error {theirs:.4g} < {mine:.4g})"
-        )
+        text = f"trajectory fit starts from the inverse-model estimates (error {theirs:.4g} < {mine:.4g})"
+        notes.append(Note(COLUMNS, text, named=False))
         return seeded
-    notes.append(
-        f"trajectory fit starts from the start model (inverse-model start: {theirs:.4g} ≥ {mine:.4g})"
-    )
+    text = f"trajectory fit starts from the start model (inverse-model start: {theirs:.4g} ≥ {mine:.4g})"
+    notes.append(Note(COLUMNS, text, named=False))
     return start
 
 
@@ -431,12 +501,12 @@ def _finish(
     rows: list[ParameterRow],
     before: float,
     after: float,
-    notes: list[str],
+    said: list[Note],
     runs: list[Run],
     report_dir: Path | None,
     say: Progress,
 ) -> Identification:
-    result = Identification(model, rows, before, after, notes=notes)
+    result = Identification(model, rows, before, after, said=said)
     result.imported = [run.meta["import_map"] for run in runs if "import_map" in run.meta]
     if report_dir is not None:
         say("validation", 0.8)

@@ -1,8 +1,11 @@
 """Staged identification: the campaign's runs, stage by stage, to the starting point of the joint fit.
 
 `staged_estimates(runs, start)` takes runs (selected by `run.meta["experiment"]`) and a starting model and
-returns the updated model with one `StageEstimate` per parameter it touched or judged. Each stage solves
-one equation of MODEL.md by least squares, with standard errors from the covariance:
+returns the updated model with one `StageEstimate` per parameter it touched or judged, and the stages'
+notes (`pipeline.Note`). Each stage is an object (`pipeline.Stage`: its name, the experiments it reads,
+the parameters it gives) run in the order `PIPELINE` declares; each solves one equation of MODEL.md by
+least squares, with standard errors from the covariance, and hands its answer to the `Book`, which
+believes or holds each value:
 
 1. motor constants (`pulse`, voltage mode): u = R·i_a + K_b·ω_m → R, K_b; K_m is the rig's, given.
 2. mechanics, twice round, each using the others' latest values:
@@ -27,6 +30,7 @@ position stage's s1, s2 with their covariance: `carry_held`), not elsewhere (A c
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,6 +60,7 @@ from rig.analysis.identification.friction_stage import (
     velocity_friction,
     velocity_names,
 )
+from rig.analysis.identification.pipeline import Note, Stage, note_lines
 
 ROUNDS = 2
 """Passes over the coupled stages (mechanics; position ↔ velocity friction): the second settles them."""
@@ -86,7 +91,11 @@ class StageEstimate:
 class StagedResult:
     model: HarmonicDriveModel
     estimates: list[StageEstimate]
-    notes: list[str] = field(default_factory=list)
+    said: list[Note] = field(default_factory=list)
+
+    @property
+    def notes(self) -> list[str]:
+        return note_lines(self.said)
 
     def estimate(self, name: str) -> StageEstimate:
         for each in self.estimates:
@@ -95,20 +104,27 @@ class StagedResult:
         raise KeyError(f"no estimate of {name!r}")
 
 
-class _Book:
-    """The model as the stages update it, and what was said of each parameter and stage."""
+class Book:
+    """The model as the stages update it, what each stage answered, and what was said of each parameter
+    and stage."""
 
     def __init__(self, model: HarmonicDriveModel) -> None:
         self.model = model
         self.estimates: dict[str, StageEstimate] = {}
-        self.notes: dict[str, list[str]] = {}
+        self.notes: dict[str, list[Note]] = {}
+        self.answers: dict[str, Solved] = {}  # by stage: its latest answer (later stages read its metrics)
         self.joint: dict[str, Held] = {}  # by stage: values believed together, with their covariance
 
     def value(self, name: str) -> float:
         return get_values(self.model, [name])[name]
 
     def say(self, stage: str, notes: list[str]) -> None:
-        self.notes[stage] = [f"{stage}: {note}" for note in notes]
+        self.notes[stage] = [Note(stage, note) for note in notes]
+
+    def first_note(self, stage: str) -> str:
+        """What the stage said first (why it skipped, say), or "not run"."""
+        said = self.notes.get(stage)
+        return said[0].text if said else "not run"
 
     def flag(self, name: str, stage: str, note: str) -> None:
         self.estimates[name] = StageEstimate(name, self.value(name), None, stage, False, note)
@@ -119,6 +135,7 @@ class _Book:
         """Believe each value whose standard error is finite and under DETERMINED·max(|value|, scale)
         (and, for the parameters of one curve in PAIRS, whose partner is believed too)."""
         self.say(stage, solved.notes)
+        self.answers[stage] = solved
         believed, doubted = {}, {}
         for name in names:
             if name in solved.undetermined:
@@ -167,7 +184,7 @@ REQUIRED_META = (
 )
 
 
-def _rig_constants(runs: list[Run], book: _Book) -> None:
+def _rig_constants(runs: list[Run], book: Book) -> None:
     """K_m and r are the rig's (run metadata): the model takes them as given."""
     for run in runs:
         missing = [key for key in REQUIRED_META if key not in run.meta]
@@ -182,6 +199,171 @@ def _rig_constants(runs: list[Run], book: _Book) -> None:
         book.flag(name, MOTOR, f"the rig's {key} (run metadata): given, not fitted")
 
 
+# --- the stages -------------------------------------------------------------------------------------------
+
+
+class MotorConstants:
+    """u = R·i_a + K_b·ω_m on voltage-mode pulses (`dynamics_stage.motor_constants`)."""
+
+    name = MOTOR
+    experiments = ("pulse",)
+
+    def gives(self, model: HarmonicDriveModel) -> list[str]:
+        return ["R", "K_b"]
+
+    def run(self, runs: Sequence[Run], book: Book) -> None:
+        book.accept(self.name, motor_constants(runs_of(runs, "pulse")), ["R", "K_b"])
+
+
+class StiffnessAndLoadFriction:
+    """Mean spring torque = τ_ext + F_l(r·ω) + J_l·dω_l/dt on the steady windows; its answer's metrics
+    (the load sensor's zero, the windows' J_l) serve the frequency-response, kinematic-error and breakaway
+    stages."""
+
+    name = STIFFNESS
+    experiments = ("speed-sweep", "load-variation")
+
+    def gives(self, model: HarmonicDriveModel) -> list[str]:
+        return [] if model.rigid else stiffness_names(model)
+
+    def run(self, runs: Sequence[Run], book: Book) -> None:
+        stiff = stiffness_and_load_friction(sweep_parts(runs, book.model), book.model)
+        book.accept(self.name, stiff, stiffness_names(book.model) + load_friction_names(book.model))
+
+
+class FrequencyResponse:
+    """The linear two-inertia FRFs of a chirp; the stiffness too when the steady windows gave none."""
+
+    name = FRF
+    experiments = ("chirp",)
+
+    def gives(self, model: HarmonicDriveModel) -> list[str]:
+        return ["J_m", "J_l"] + ([] if model.rigid else ["D_s"])
+
+    def run(self, runs: Sequence[Run], book: Book) -> None:
+        chirps = runs_of(runs, "chirp")
+        if not chirps:
+            book.say(self.name, ["skipped: no chirp run"])
+            return
+        static_known = bool(book.answers[STIFFNESS].values)
+        slope = _friction_slope(chirps[0], book.model)
+        frf = frequency_response(chirps[0], book.model, not static_known, slope)
+        stiffness = stiffness_names(book.model)
+        names = ["J_m"] if book.model.rigid else ["J_m"] + ([] if static_known else stiffness[:1])
+        if book.model.rigid:
+            frf.undetermined["J_l"] = "a rigid axis shows J_m + r²·J_l only: J_m carries the sum"
+        book.accept(self.name, frf, [*names, "J_l", "D_s"])
+
+
+class KinematicError:
+    """θ_l − r·θ_m at k per motor turn, through the load's response, on the position passes."""
+
+    name = KINEMATIC
+    experiments = ("position-friction",)
+
+    def gives(self, model: HarmonicDriveModel) -> list[str]:
+        return ["A", "phi"] if model.kinematic_error is not None else []
+
+    def run(self, runs: Sequence[Run], book: Book) -> None:
+        passes = runs_of(runs, "position-friction")
+        ripple = kinematic_error(passes, _sharper_load_inertia(book, book.answers[STIFFNESS]))
+        book.accept(self.name, ripple, ["A", "phi"], {"phi": math.pi})
+
+
+class PositionFriction:
+    """The motor friction's position terms (s1, s2, a_n, b_n) on the position passes."""
+
+    name = POSITION
+    experiments = ("position-friction",)
+
+    def gives(self, model: HarmonicDriveModel) -> list[str]:
+        return ["s1", "s2", *FOURIER_NAMES] if model.motor_friction.motor_law == "article" else []
+
+    def run(self, runs: Sequence[Run], book: Book) -> None:
+        position = position_friction(runs_of(runs, "position-friction"), book.model)
+        scales = {}
+        if position.values:
+            s3 = abs(book.value("s3"))
+            span = position.metrics["span_rad"]
+            scales = {"s1": RELATIVE_SCALE * s3 / span**2, "s2": RELATIVE_SCALE * s3 / span}
+            scales.update({name: RELATIVE_SCALE * s3 for name in FOURIER_NAMES})
+            position.notes.append(
+                f"s3 from these passes: {position.values['s3']:.5g} N·m (a check of the velocity stage's)"
+            )
+        book.accept(self.name, position, ["s1", "s2", *FOURIER_NAMES], scales)
+
+
+class VelocityFriction:
+    """The motor friction against velocity on the steady windows, carrying the position stage's σ."""
+
+    name = VELOCITY
+    experiments = ("speed-sweep", "load-variation")
+
+    def gives(self, model: HarmonicDriveModel) -> list[str]:
+        return velocity_names(model)
+
+    def run(self, runs: Sequence[Run], book: Book) -> None:
+        velocity = velocity_friction(sweep_parts(runs, book.model), book.model, book.joint.get(POSITION))
+        scales = {"f_dir": RELATIVE_SCALE * abs(book.value("s3"))} if book.model.direction_asymmetry else {}
+        book.accept(self.name, velocity, velocity_names(book.model), scales)
+        if "asymmetry_nm" in velocity.metrics and book.model.direction_asymmetry is None:
+            book.notes[self.name].append(
+                Note(
+                    self.name,
+                    f"direction asymmetry (forward − backward)/2 = {velocity.metrics['asymmetry_nm']:.3g}"
+                    " N·m (a metric; not in the model)",
+                )
+            )
+
+
+class Breakaway:
+    """The breakaway level (static_factor, or f_sm of the baseline laws) from every run's sticks."""
+
+    name = BREAKAWAY
+    experiments = ()  # every run: any stick in any experiment
+
+    def gives(self, model: HarmonicDriveModel) -> list[str]:
+        law = model.motor_friction.motor_law
+        return (
+            ["static_factor"]
+            if law == "article"
+            else ["f_sm"]
+            if law in ("coulomb_viscous", "stribeck")
+            else []
+        )
+
+    def run(self, runs: Sequence[Run], book: Book) -> None:
+        stiff = book.answers.get(STIFFNESS)
+        offset = stiff.metrics.get("theta_l_offset", 0.0) if stiff is not None else 0.0
+        book.accept(self.name, breakaway(runs, book.model, offset), ["static_factor", "f_sm"])
+
+
+@dataclass(frozen=True)
+class Rounds:
+    """Stages run in turn, `times` over: coupled stages, each using the others' latest values."""
+
+    stages: tuple[Stage, ...]
+    times: int = 1
+
+
+PIPELINE = (
+    Rounds((MotorConstants(),)),
+    Rounds(
+        (
+            StiffnessAndLoadFriction(),
+            FrequencyResponse(),
+            KinematicError(),
+            PositionFriction(),
+            VelocityFriction(),
+        ),
+        ROUNDS,
+    ),
+    Rounds((Breakaway(),)),
+)
+"""The staged identification, in order: a new stage is one more `Rounds` (or joins the coupled ones)."""
+STAGES: tuple[Stage, ...] = tuple(stage for rounds in PIPELINE for stage in rounds.stages)
+
+
 def _friction_slope(chirp: Run, model: HarmonicDriveModel) -> float:
     """c_m: slope dF_m/dω of the model's moving friction at the chirp's mean speed, over its positions."""
     speed = float(chirp.meta["params"]["mean_speed_motor_rad_s"])
@@ -192,31 +374,7 @@ def _friction_slope(chirp: Run, model: HarmonicDriveModel) -> float:
     return float(np.mean(up - down))
 
 
-def _mechanics(runs: list[Run], book: _Book) -> float:
-    """Stiffness and load friction, FRF, kinematic error; returns the load sensor's zero [rad]."""
-    parts = sweep_parts(runs, book.model)
-    stiff = stiffness_and_load_friction(parts, book.model)
-    offset = stiff.metrics.get("theta_l_offset", 0.0)
-    stiffness = stiffness_names(book.model)
-    book.accept(STIFFNESS, stiff, stiffness + load_friction_names(book.model))
-    chirps = runs_of(runs, "chirp")
-    if chirps:
-        static_known = bool(stiff.values)
-        slope = _friction_slope(chirps[0], book.model)
-        frf = frequency_response(chirps[0], book.model, not static_known, slope)
-        names = ["J_m"] if book.model.rigid else ["J_m"] + ([] if static_known else stiffness[:1])
-        if book.model.rigid:
-            frf.undetermined["J_l"] = "a rigid axis shows J_m + r²·J_l only: J_m carries the sum"
-        book.accept(FRF, frf, [*names, "J_l", "D_s"])
-    else:
-        book.say(FRF, ["skipped: no chirp run"])
-    passes = runs_of(runs, "position-friction")
-    ripple = kinematic_error(passes, _sharper_load_inertia(book, stiff))
-    book.accept(KINEMATIC, ripple, ["A", "phi"], {"phi": math.pi})
-    return offset
-
-
-def _sharper_load_inertia(book: _Book, stiff: Solved) -> HarmonicDriveModel:
+def _sharper_load_inertia(book: Book, stiff: Solved) -> HarmonicDriveModel:
     """The model for the kinematic-error stage, with the stiffness windows' J_l where it is the sharper.
 
     The stage passes the ripple through the load, G ∝ 1/J_l, so A carries J_l's error one to one, and
@@ -232,51 +390,16 @@ def _sharper_load_inertia(book: _Book, stiff: Solved) -> HarmonicDriveModel:
     return with_values(book.model, {"J_l": value})
 
 
-def _friction(runs: list[Run], book: _Book) -> None:
-    passes = runs_of(runs, "position-friction")
-    position = position_friction(passes, book.model)
-    scales = {}
-    if position.values:
-        s3 = abs(book.value("s3"))
-        span = position.metrics["span_rad"]
-        scales = {"s1": RELATIVE_SCALE * s3 / span**2, "s2": RELATIVE_SCALE * s3 / span}
-        scales.update({name: RELATIVE_SCALE * s3 for name in FOURIER_NAMES})
-        position.notes.append(
-            f"s3 from these passes: {position.values['s3']:.5g} N·m (a check of the velocity stage's)"
-        )
-    book.accept(POSITION, position, ["s1", "s2", *FOURIER_NAMES], scales)
-    velocity = velocity_friction(sweep_parts(runs, book.model), book.model, book.joint.get(POSITION))
-    scales = {"f_dir": RELATIVE_SCALE * abs(book.value("s3"))} if book.model.direction_asymmetry else {}
-    book.accept(VELOCITY, velocity, velocity_names(book.model), scales)
-    if "asymmetry_nm" in velocity.metrics and book.model.direction_asymmetry is None:
-        book.notes[VELOCITY].append(
-            f"friction-velocity: direction asymmetry (forward − backward)/2 = "
-            f"{velocity.metrics['asymmetry_nm']:.3g} N·m (a metric; not in the model)"
-        )
-
-
 def _expected(model: HarmonicDriveModel) -> dict[str, list[str]]:
     """What each stage estimates for this model."""
-    article = model.motor_friction.motor_law == "article"
-    stages = {
-        MOTOR: ["R", "K_b"],
-        STIFFNESS: [] if model.rigid else stiffness_names(model),
-        FRF: ["J_m", "J_l"] + ([] if model.rigid else ["D_s"]),
-        KINEMATIC: ["A", "phi"] if model.kinematic_error is not None else [],
-        POSITION: ["s1", "s2", *FOURIER_NAMES] if article else [],
-        VELOCITY: velocity_names(model),
-        BREAKAWAY: ["static_factor"] if article else [],
-    }
-    if model.motor_friction.motor_law in ("coulomb_viscous", "stribeck"):
-        stages[BREAKAWAY] = ["f_sm"]
-    return stages
+    return {stage.name: stage.gives(model) for stage in STAGES}
 
 
-def _structural(runs: list[Run], book: _Book) -> None:
+def _structural(runs: list[Run], book: Book) -> None:
     """The parameters these experiments cannot determine, each with the reason."""
     model = book.model
     for stage, names in _expected(model).items():
-        why = book.notes.get(stage, ["not run"])[0].removeprefix(f"{stage}: ")
+        why = book.first_note(stage)
         for name in names:
             if name not in book.estimates:
                 book.flag(name, stage, f"{why}; held at the start value")
@@ -296,7 +419,7 @@ def _structural(runs: list[Run], book: _Book) -> None:
     lf = model.load_friction
     if lf is not None:
         if "f_cl" not in book.estimates and "f_cl" in load_friction_names(model):
-            why = book.notes.get(STIFFNESS, ["not run"])[0].removeprefix(f"{STIFFNESS}: ")
+            why = book.first_note(STIFFNESS)
             for name in load_friction_names(model):
                 book.flag(
                     name,
@@ -321,7 +444,7 @@ def _structural(runs: list[Run], book: _Book) -> None:
         ("thermal_drift", ("d_th", "tau_th")),
     ):
         if getattr(model, section) is not None:
-            for name in held:
+            for name in (n for n in held if n not in book.estimates):  # unless a stage estimated it
                 book.flag(name, STRUCTURAL, f"{section} is not estimated by the staged fit: held")
     data = model.to_dict()
     sections = {**data["motor_friction"], **data.get("load_friction", {})}
@@ -334,20 +457,16 @@ def staged_estimates(runs: list[Run], start: HarmonicDriveModel) -> StagedResult
     """Staged estimates of the model's parameters from the runs, starting from `start` (see the module)."""
     if not runs:
         raise UserInputError("staged identification needs at least one run")
-    book = _Book(start)
+    book = Book(start)
     if start.motor_friction.motor_law == "article" and start.motor_friction.fourier_a()[0] != 0.0:
         book.update({"a0": 0.0})
     _rig_constants(runs, book)
-    motor = motor_constants(runs_of(runs, "pulse"))
-    book.accept(MOTOR, motor, ["R", "K_b"])
-    offset = 0.0
-    for _ in range(ROUNDS):
-        offset = _mechanics(runs, book)
-        _friction(runs, book)
-    brk = breakaway(runs, book.model, offset)
-    book.accept(BREAKAWAY, brk, ["static_factor", "f_sm"])
+    for rounds in PIPELINE:
+        for _ in range(rounds.times):
+            for stage in rounds.stages:
+                stage.run(runs, book)
     _structural(runs, book)
     present = {str(run.meta.get("experiment")) for run in runs}
-    notes = [f"experiments: {', '.join(sorted(present))}"]
-    notes += [note for stage_notes in book.notes.values() for note in stage_notes]
-    return StagedResult(book.model, list(book.estimates.values()), notes)
+    said = [Note("experiments", ", ".join(sorted(present)))]
+    said += [note for stage_notes in book.notes.values() for note in stage_notes]
+    return StagedResult(book.model, list(book.estimates.values()), said)
