@@ -71,7 +71,28 @@ class Sensors(_Section):
     temperature_lag_s: float = Field(
         default=0.0, ge=0, description="temperature probes' first-order time constant; 0: none [s]"
     )
+    torque_transducers: bool = Field(
+        default=False,
+        description="in-line torque transducers at the input and output shafts: the run records "
+        "tau_in and tau_out (a bench with a load drive)",
+    )
+    torque_noise_nm: float = Field(default=0.0, ge=0, description="torque transducers' noise, 1 σ [N·m]")
     seed: int = Field(default=0, description="noise generator seed, for reproducible runs")
+
+
+class LoadDrive(_Section):
+    """The dynamometer's load drive on the output shaft: a torque-controlled motor whose current loop
+    follows the segment's load torque within its bandwidth and limit; its rotor adds inertia and
+    friction at the output."""
+
+    inertia_kgm2: float = Field(default=0.0, ge=0, description="load rotor inertia at the output [kg·m²]")
+    viscous_nms: float = Field(default=0.0, ge=0, description="load bearing viscous friction [N·m·s/rad]")
+    coulomb_nm: float = Field(default=0.0, ge=0, description="load bearing Coulomb friction [N·m]")
+    torque_constant_nm_a: float = Field(gt=0, description="load motor torque constant at the output [N·m/A]")
+    current_bandwidth_hz: float = Field(
+        default=0.0, ge=0, description="load drive current loop bandwidth (first order); 0: ideal [Hz]"
+    )
+    torque_limit_nm: float = Field(gt=0, description="the most torque the load drive applies [N·m]")
 
 
 class RigConfig(BaseModel):
@@ -94,6 +115,9 @@ class RigConfig(BaseModel):
     limits: Limits
     control: Control
     sensors: Sensors = Field(default_factory=Sensors)
+    load_drive: LoadDrive | None = Field(
+        default=None, description="a dynamometer's load drive on the output shaft; none: a free output"
+    )
 
     @model_validator(mode="after")
     def _saturation_inside_the_envelope(self) -> RigConfig:
