@@ -134,3 +134,13 @@ def test_fit_json_and_text_carry_the_figures_beside_the_parameters(capsys):
     _print_lab_quantities(FitDocument.model_validate(document).lab_quantities)
     printed = capsys.readouterr().out
     assert "coulomb_at_rest_forward_Nm" in printed and "inertia_output_side_kgm2" in printed
+
+
+def test_the_fit_report_has_the_table_of_lab_quantities():
+    from rig.analysis.identification.identify import Identification, _report
+
+    rows = [ParameterRow("J_m", 5e-5, 5.5e-5, 1e-6, True, "joint")]
+    text = _report(Identification(load_model("seed"), rows, 0.5, 0.1))
+    assert "## The numbers labs compare" in text
+    line = next(x for x in text.splitlines() if x.startswith("| inertia_motor_side_kgm2 |"))
+    assert "7.5e-05" in line and "1e-06" in line  # J_m + r²·J_l; σ of J_m alone (J_l held)

@@ -536,5 +536,8 @@ def _report(result: Identification) -> str:
         f"Fit error ({FIT_METRIC}): before {result.fit_error_before:.4g}, after {result.fit_error_after:.4g}",
         "",
     ]
+    from rig.analysis.identification.lab_quantities import fitted_sigmas, lab_quantities, lab_table
+
+    lines += [*lab_table(lab_quantities(result.model, fitted_sigmas(result.parameters))), ""]
     lines += [f"- {n}" for n in result.notes]
     return "\n".join(lines) + "\n"
