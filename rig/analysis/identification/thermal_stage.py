@@ -48,6 +48,7 @@ from rig.experiments.warm_up import WarmUpParams, warm_up_checkpoints
 BIN_S = 1.0
 """Bin of the network fit [s]: the thermal time constants are tens of seconds or more."""
 NETWORK = ("C_w", "C_g", "R_wg", "R_wa", "R_ga")
+START_SPAN = 7.0
 T_REF_DEFAULT_C = 25.0
 
 
@@ -154,7 +155,10 @@ def _simulate(log_params: np.ndarray, bins: _Bins, ambient: float, start: tuple[
 
 
 def _equation_error_start(bins_list: list[_Bins]) -> np.ndarray:
-    """Starting logarithms from dT/dt = a·T_w + b·T_g + Q/C + c on the lag-corrected temperatures."""
+    """Starting logarithms from the network's equations integrated over each run, on the lag-corrected
+    temperatures: T(t) − T(0) = a·∫T_w + b·∫T_g + ∫Q/C + c·t, linear in a, b, 1/C, c. Integrals, not
+    derivatives: the probes' noise enters once, not differenced (at the real scale, minutes of time
+    constants, differenced noise swamps the slopes)."""
     rows_w, rows_g, dw, dg = [], [], [], []
     for bins in bins_list:
         temps = []
@@ -162,10 +166,12 @@ def _equation_error_start(bins_list: list[_Bins]) -> np.ndarray:
             rate = np.gradient(probe, BIN_S)
             temps.append(probe + bins.lag_s * rate)  # a first-order probe: T = m + lag·dm/dt
         t_w, t_g = temps
-        rows_w.append(np.column_stack([t_w, t_g, bins.q_w, np.ones_like(t_w)]))
-        rows_g.append(np.column_stack([t_w, t_g, bins.q_g, np.ones_like(t_g)]))
-        dw.append(np.gradient(t_w, BIN_S))
-        dg.append(np.gradient(t_g, BIN_S))
+        time_s = BIN_S * np.arange(t_w.shape[0])
+        i_w, i_g = np.cumsum(t_w) * BIN_S, np.cumsum(t_g) * BIN_S
+        rows_w.append(np.column_stack([i_w, i_g, np.cumsum(bins.q_w) * BIN_S, time_s]))
+        rows_g.append(np.column_stack([i_w, i_g, np.cumsum(bins.q_g) * BIN_S, time_s]))
+        dw.append(t_w - t_w[0])
+        dg.append(t_g - t_g[0])
     cw = np.linalg.lstsq(np.vstack(rows_w), np.concatenate(dw), rcond=None)[0]
     cg = np.linalg.lstsq(np.vstack(rows_g), np.concatenate(dg), rcond=None)[0]
     c_w = 1.0 / max(cw[2], 1e-6)
@@ -201,7 +207,11 @@ def fit_network(runs: list[Run], resistance_ohm: float, inertia: tuple[float, fl
             out += [bins.temp_w - predicted[:, 0], bins.temp_g - predicted[:, 1]]
         return np.concatenate(out)
 
-    solution = least_squares(residual, np.asarray(x0), method="lm", x_scale="jac")
+    # Bounded: each logarithm within START_SPAN of its start (e^7 ≈ 1100×), so a parameter the data do not
+    # determine ends on a bound (said in the notes) instead of running off to infinity.
+    lower = np.concatenate([start - START_SPAN, np.full(len(x0) - 5, -np.inf)])
+    upper = np.concatenate([start + START_SPAN, np.full(len(x0) - 5, np.inf)])
+    solution = least_squares(residual, np.asarray(x0), bounds=(lower, upper), x_scale="jac")
     jac, res = solution.jac, solution.fun
     dof = max(1, res.shape[0] - solution.x.shape[0])
     s2 = float(res @ res) / dof
@@ -227,6 +237,10 @@ def fit_network(runs: list[Run], resistance_ohm: float, inertia: tuple[float, fl
         "thermal network: σ from the Gauss-Newton covariance with the bins' residuals taken as"
         f" independent (RMS {math.sqrt(s2):.3g} °C); a correlated misfit makes them optimistic"
     ]
+    for i, name in enumerate(NETWORK):
+        on_bound = min(solution.x[i] - lower[i], upper[i] - solution.x[i]) < 1e-3
+        if on_bound or parameters[name].sigma > values[i]:
+            notes.append(f"thermal network: {name} is not determined by these runs (σ ≥ value or on a bound)")
     return ThermalFit(parameters, time_constants, ambient, math.sqrt(s2), notes)
 
 
