@@ -138,7 +138,7 @@ def warm_up_and_fit(store: RunStore) -> HarmonicDriveModel:
             " 5 % |"
         )
     low, high = law.temperature_span_c
-    print(f"\ngear temperature span of the checkpoints: {low:.1f}–{high:.1f} °C; notes: {found.network.notes}")
+    print(f"\ncheckpoints span {low:.1f}–{high:.1f} °C of gear temperature; notes: {found.network.notes}")
     return truth.model_copy(update={"thermal": found.section})
 
 
