@@ -112,3 +112,19 @@ def test_a_run_without_temperatures_is_refused_in_one_line() -> None:
     with pytest.raises(UserInputError, match="temp_gear, temp_motor") as caught:
         warm_up_checkpoints(run, None, WarmUpParams())  # type: ignore[arg-type]
     assert "\n" not in str(caught.value)
+
+
+def test_fit_takes_warm_up_runs_to_the_thermal_stage(played: tuple[RunStore, Run]) -> None:
+    from rig.analysis.identification.identify import THERMAL, identify
+
+    _, run = played
+    truth = load_model(PLANT)
+    assert truth.thermal is not None
+    result = identify([run], load_model("seed"))  # a start without a thermal section
+    assert result.model.thermal is not None
+    assert result.model.thermal.beta_T == pytest.approx(truth.thermal.beta_T, rel=0.10)
+    assert result.model.thermal.C_g == pytest.approx(truth.thermal.C_g, rel=0.10)
+    rows = {row.name: row for row in result.parameters if row.stage == THERMAL}
+    assert {"C_w", "C_g", "R_wg", "R_wa", "R_ga", "beta_T", "T_amb"} <= set(rows)
+    assert rows["beta_T"].uncertainty is not None and rows["beta_T"].identifiable
+    assert any(note.startswith(f"{THERMAL}: friction law") for note in result.notes)

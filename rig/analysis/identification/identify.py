@@ -121,12 +121,17 @@ def identify(
     say = progress or (lambda label, fraction: None)
     if not runs:
         raise UserInputError("fit needs at least one run (--data)")
+    # Warm-up runs go to the thermal stage alone (issue 27), applied in _finish; the others as before.
+    warm = [r for r in runs if r.meta.get("experiment") == WARM_UP]
+    runs = [r for r in runs if r.meta.get("experiment") != WARM_UP]
+    if not runs:
+        return _finish(start, [], math.nan, math.nan, [], [], report_dir, say, warm)
     begun = starting_point(runs, start, joint, say)
     if not begun.trajectory_runs:
         text = f"no {'/'.join(JOINT_EXPERIMENTS)} run: no trajectory to refine on, fit error not measured"
         begun.said.append(Note(JOINT, text, named=False))
         rows = list(begun.rows.values())
-        return _finish(begun.model, rows, math.nan, math.nan, begun.said, runs, report_dir, say)
+        return _finish(begun.model, rows, math.nan, math.nan, begun.said, runs, report_dir, say, warm)
     chosen = refine_jointly(start, begun, joint, say)
     if chosen.kept == JOINT and chosen.refined is not None:
         _take_joint_values(begun.rows, chosen.refined, chosen.priors, begun.said)
@@ -135,7 +140,7 @@ def identify(
     if begun.inverse is not None:
         begun.inverse["trajectory"] = axis_figures(model, begun.trajectory_runs)
     before, after = chosen.cost["start"], chosen.cost[chosen.kept]
-    result = _finish(model, list(begun.rows.values()), before, after, begun.said, runs, report_dir, say)
+    result = _finish(model, list(begun.rows.values()), before, after, begun.said, runs, report_dir, say, warm)
     result.held_out = {"every": HOLDOUT_EVERY, "errors": chosen.held, "kept": chosen.kept}
     result.inverse_model = begun.inverse
     return result
@@ -505,7 +510,10 @@ def _finish(
     runs: list[Run],
     report_dir: Path | None,
     say: Progress,
+    warm: list[Run] | None = None,
 ) -> Identification:
+    if warm:
+        model, rows = _with_thermal(model, rows, said, warm)
     result = Identification(model, rows, before, after, said=said)
     result.imported = [run.meta["import_map"] for run in runs if "import_map" in run.meta]
     if report_dir is not None:
@@ -516,6 +524,48 @@ def _finish(
         result.report_file.write_text(_report(result))
     say("done", 1.0)
     return result
+
+
+WARM_UP = "warm-up"
+THERMAL = "thermal"
+"""The thermal stage's name in notes and rows (`thermal_stage`: network and friction law from warm-ups)."""
+
+
+def _with_thermal(
+    model: HarmonicDriveModel, rows: list[ParameterRow], said: list[Note], warm: list[Run]
+) -> tuple[HarmonicDriveModel, list[ParameterRow]]:
+    """The model with the `thermal` section fitted on the warm-up runs, and its rows (issue 27 item 4).
+    The other parameters stay as fitted: on the other runs, without their temperatures."""
+    from rig.analysis.identification.thermal_stage import identify_thermal
+
+    found = identify_thermal(warm, model)
+    old = model.thermal
+    estimates = {name: (e.value, e.sigma) for name, e in found.network.parameters.items()}
+    estimates["beta_T"] = (found.law.beta_per_k.value, found.law.beta_per_k.sigma)
+    estimates["T_amb"] = (found.section.T_amb, math.nan)
+    fitted = [
+        ParameterRow(
+            name,
+            float(getattr(old, name)) if old is not None else math.nan,
+            value,
+            None if math.isnan(sigma) else sigma,
+            not math.isnan(sigma),
+            THERMAL,
+            "" if name != "T_amb" else "the warm-up runs' mean ambient, from the network fit",
+        )
+        for name, (value, sigma) in estimates.items()
+    ]
+    said += [Note(THERMAL, text) for text in found.network.notes]
+    said.append(
+        Note(
+            THERMAL,
+            f"friction law from {len(warm)} warm-up run(s) at T_ref = {found.law.t_ref_c:g} °C over"
+            f" {found.law.temperature_span_c[0]:.1f}–{found.law.temperature_span_c[1]:.1f} °C; the other"
+            " parameters are fitted on the other runs without their temperatures",
+        )
+    )
+    kept = [row for row in rows if row.name not in estimates]
+    return model.model_copy(update={"thermal": found.section}), kept + fitted
 
 
 def save_identified(result: Identification, path: Path) -> Path:
