@@ -18,8 +18,9 @@ The fit is output-error: the network and the probes' first-order lag (the rig fi
 `sensors.temperature_lag_s`) are simulated on 1 s bins (exact discretization, inputs held over each bin)
 from each run's own initial temperatures and ambient, and the five parameters (as logarithms: positive)
 fitted by least squares to both probes' bin means; starting values from an equation-error regression on
-the lag-corrected temperatures. σ: the Gauss-Newton covariance scaled by the residuals' variance, which
-treats the bin residuals as independent: when the model is right they are the probes' noise, averaged.
+the lag-corrected temperatures. σ: the Gauss-Newton covariance scaled by the residuals' variance and
+widened by n/n_eff for their correlation from bin to bin (a misfit that follows itself informs less than
+independent noise would).
 
 The friction law: at each warm-up checkpoint the running torque at each speed and the gear's measured
 temperature; ln torque = ln F_ref(speed) − beta_T·(T_g − T_ref), one beta_T and one F_ref per speed,
@@ -182,6 +183,19 @@ def _equation_error_start(bins_list: list[_Bins]) -> np.ndarray:
     return np.log([c_w, c_g, 1.0 / g_wg, 1.0 / g_wa, 1.0 / g_ga])
 
 
+def _correlation_widening(residual: np.ndarray, lengths: list[int]) -> float:
+    """n/n_eff of the residuals, from their lag-1 autocorrelation within each series (at least 1)."""
+    pairs, energy, start = 0.0, 0.0, 0
+    for length in lengths:
+        for half in (slice(start, start + length // 2), slice(start + length // 2, start + length)):
+            r = residual[half] - np.mean(residual[half])
+            pairs += float(r[1:] @ r[:-1])
+            energy += float(r @ r)
+        start += length
+    rho = min(max(pairs / energy, 0.0), 0.999) if energy > 0 else 0.0
+    return (1.0 + rho) / (1.0 - rho)
+
+
 def _time_constants(log_params: np.ndarray) -> np.ndarray:
     a, _ = _matrices(log_params, 0.0)
     rates = np.sort(-np.linalg.eigvals(a[:2, :2]).real)
@@ -215,7 +229,11 @@ def fit_network(runs: list[Run], resistance_ohm: float, inertia: tuple[float, fl
     jac, res = solution.jac, solution.fun
     dof = max(1, res.shape[0] - solution.x.shape[0])
     s2 = float(res @ res) / dof
-    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    # Residuals that follow each other from bin to bin (a misfit, not the probes' white noise) carry less
+    # information than their count: the covariance is widened by n/n_eff, n_eff = n·(1 − ρ)/(1 + ρ) with
+    # ρ their lag-1 autocorrelation (within each probe's series).
+    widen = _correlation_widening(res, [2 * b.q_w.shape[0] for b in bins_list])
+    cov = s2 * widen * np.linalg.pinv(jac.T @ jac)
     values = np.exp(solution.x[:5])
     parameters = {
         name: Estimate(float(values[i]), float(values[i] * math.sqrt(max(cov[i, i], 0.0))))
@@ -234,8 +252,8 @@ def fit_network(runs: list[Run], resistance_ohm: float, inertia: tuple[float, fl
     )
     ambient = [float(solution.x[5 + 3 * i]) for i in range(len(runs))]
     notes = [
-        "thermal network: σ from the Gauss-Newton covariance with the bins' residuals taken as"
-        f" independent (RMS {math.sqrt(s2):.3g} °C); a correlated misfit makes them optimistic"
+        "thermal network: σ from the Gauss-Newton covariance, widened ×"
+        f"{math.sqrt(widen):.3g} for the residuals' correlation from bin to bin (RMS {math.sqrt(s2):.3g} °C)"
     ]
     for i, name in enumerate(NETWORK):
         on_bound = min(solution.x[i] - lower[i], upper[i] - solution.x[i]) < 1e-3
