@@ -24,17 +24,26 @@ class SimRig(Rig):
     ) -> None:
         """`model` overrides the config's `model:` file; `theta_m` is the motor angle it starts at [rad]."""
         super().__init__(config)
-        self.model: HarmonicDriveModel = model if model is not None else load_model(config.model or "seed")
+        chosen = model if model is not None else load_model(config.model or "seed")
+        self.gear_model = chosen
+        """The gear's model as given; `model` is what the plant runs (a load drive's rotor added)."""
+        self.model: HarmonicDriveModel = with_load_drive(chosen, config)
         self.plant = Plant(self.model)
         self.plant.reset(theta_m=theta_m)
         self.drive = SimulatedDrive(self.plant, config)
         self._wall_start: float | None = None
         self._keep_truth = False
+        extra: tuple[str, ...] = ()
         if self.model.thermal is not None:
             # The probes read the plant's temperature of every cycle, which the drive's truth record
             # carries: kept on, and emptied after each block unless a test asked for the truth.
-            self.extra_columns = TEMPERATURE_COLUMNS
+            extra += TEMPERATURE_COLUMNS
             self._probes = TemperatureProbes(config, self._temperatures_c())
+        if config.sensors.torque_transducers:
+            extra += TORQUE_COLUMNS
+            self._transducers = TorqueTransducers(config, self.model, chosen)
+        if extra:
+            self.extra_columns = extra
             self.drive.record_truth(True)
 
     source = "sim"
@@ -52,7 +61,8 @@ class SimRig(Rig):
         self._wall_start = time.monotonic() - self.t_s
 
     def _disable(self) -> None:
-        return None  # power removed: the plant coasts under friction when next stepped
+        # Power removed: the plant coasts under friction when next stepped, the load drive unloaded.
+        self.drive.load_state[:] = 0.0
 
     def _quick_stop(self) -> None:
         return None  # nothing runs between cycles; run_segment sees the stop request
@@ -90,10 +100,13 @@ class SimRig(Rig):
         block = {name: rows[:, i] for i, name in enumerate(SAMPLE_COLUMNS)}
         if self.extra_columns and self.drive.truth is not None:
             cycles = self.drive.truth[-1]
-            plant_c = np.stack([cycles[:, TRUTH_COLUMNS.index(name)] for name in TEMPERATURE_COLUMNS])
             if not self._keep_truth:
                 self.drive.truth.clear()
-            block.update(self._probes.read(plant_c, self.period_s))
+            if TEMPERATURE_COLUMNS[0] in self.extra_columns:
+                plant_c = np.stack([cycles[:, TRUTH_COLUMNS.index(name)] for name in TEMPERATURE_COLUMNS])
+                block.update(self._probes.read(plant_c, self.period_s))
+            if TORQUE_COLUMNS[0] in self.extra_columns:
+                block.update(self._transducers.read(cycles))
         return block, code
 
     def _temperatures_c(self) -> np.ndarray:
@@ -132,4 +145,59 @@ class TemperatureProbes:
             if n:
                 self.state_c[i] = seen[-1]
             out[name] = seen + self.noise_c * self.rng.standard_normal(n) if self.noise_c > 0 else seen
+        return out
+
+
+def with_load_drive(model: HarmonicDriveModel, config: RigConfig) -> HarmonicDriveModel:
+    """The model the plant runs on a bench with a load drive: the drive's rotor inertia adds to the
+    output's `J_l` (its bearing friction is applied by the simulated drive, beside the load torque)."""
+    if config.load_drive is None or config.load_drive.inertia_kgm2 == 0.0:
+        return model
+    mechanics = model.mechanics.model_copy(
+        update={"J_l": model.mechanics.J_l + config.load_drive.inertia_kgm2}
+    )
+    return model.model_copy(update={"mechanics": mechanics})
+
+
+TORQUE_COLUMNS = ("tau_in", "tau_out")
+
+
+class TorqueTransducers:
+    """In-line torque transducers (`sensors.torque_transducers`), each with white noise of
+    `sensors.torque_noise_nm`, read from the plant's torques averaged over every cycle.
+
+    `tau_in` sits on the input shaft, between the motor (with the wave generator: the model's `J_m`) and
+    the gear: the torque the gear takes in, r·T_s + F_m. `tau_out` sits on the output shaft, between the
+    gear's output (its bearing and the model's `J_l`) and the load drive's rotor: T_s − F_l less what
+    accelerates the gear's output inertia. In steady motion these are the motor's torque and the load's.
+    The shafts are taken as stiff beside the gear (K_s): their twist is not modelled.
+    """
+
+    def __init__(
+        self, config: RigConfig, plant_model: HarmonicDriveModel, gear_model: HarmonicDriveModel
+    ) -> None:
+        self.noise_nm = config.sensors.torque_noise_nm
+        self.rng = np.random.default_rng([config.sensors.seed, 0x70])  # its own stream: other noise unchanged
+        self.r = plant_model.mechanics.r
+        # Share of the output's net torque that accelerates the gear's own output inertia (the rest
+        # accelerates the load drive's rotor, beyond the transducer).
+        self.gear_share = gear_model.mechanics.J_l / plant_model.mechanics.J_l
+
+    def truth(self, cycles: np.ndarray) -> dict[str, np.ndarray]:
+        """The transducers' true torques for truth rows (TRUTH_COLUMNS) [N·m]."""
+        t_s = cycles[:, TRUTH_COLUMNS.index("t_s")]
+        f_m = cycles[:, TRUTH_COLUMNS.index("f_m")]
+        f_l = cycles[:, TRUTH_COLUMNS.index("f_l")]
+        tau_ext = cycles[:, TRUTH_COLUMNS.index("tau_ext")]
+        return {
+            "tau_in": self.r * t_s + f_m,
+            "tau_out": t_s - f_l - self.gear_share * (t_s - f_l - tau_ext),
+        }
+
+    def read(self, cycles: np.ndarray) -> dict[str, np.ndarray]:
+        """What the transducers read over a block of truth rows [N·m]."""
+        out = self.truth(cycles)
+        if self.noise_nm > 0:
+            for name in TORQUE_COLUMNS:
+                out[name] = out[name] + self.noise_nm * self.rng.standard_normal(out[name].shape[0])
         return out

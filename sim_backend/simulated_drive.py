@@ -38,6 +38,15 @@ D_K_B, D_R, D_SUPPLY, D_QUANTUM, D_FILTER_ALPHA, D_CURRENT_NOISE, D_LOAD_NOISE, 
 # Sensor state: last quantized position [rad], filtered speed [rad/s].
 M_THETA_PREV, M_OMEGA = range(2)
 _NO_FEEDFORWARD = np.empty((0, N_FF_COLUMNS))
+# Load drive vector (a dynamometer's torque-controlled drive on the output, `load_drive` in the rig file):
+# present (1/0), current-loop lag factor per cycle, torque limit [N·m], its bearing's Coulomb [N·m] and
+# viscous [N·m·s/rad] friction, and the speed over which that Coulomb part goes smoothly through zero [rad/s].
+L_ON, L_ALPHA, L_LIMIT, L_COULOMB, L_VISCOUS, L_SMOOTH = range(6)
+LOAD_FRICTION_SMOOTH_RAD_S = 0.01
+"""The load drive's bearing friction is applied once per cycle from the cycle's start speed, so its
+Coulomb part is a tanh of speed over this band rather than a sign (a sign, held a whole cycle, would chatter
+at rest); the gear's own load friction keeps the kernel's stick model."""
+_NO_LOAD_DRIVE = np.zeros(6)
 
 # The plant's truth per cycle (opt-in, `SimulatedDrive.record_truth`): the states at the cycle's start (as
 # the sample is taken), the torques averaged over the cycle's substeps (their mean is what changes the
@@ -133,12 +142,17 @@ def run_cycles(
     ff: np.ndarray,
     ff_band: float,
     truth: np.ndarray,
+    load_drive: np.ndarray,
+    load_state: np.ndarray,
 ) -> tuple[int, int]:
     """Run len(setpoint) cycles from time t0; fill `out` rows (SAMPLE_COLUMNS). Returns (rows, abort).
 
     `ff`: a feed-forward track's rows for these cycles (position mode), or an empty array for none.
     `truth`: rows of TRUTH_COLUMNS to fill per cycle, or an empty array for none (the kernel then writes
     one row a cycle, as without it; with it, one a substep: the same steps either way).
+    `load_drive` (L_* entries): when on, `tau_ext` is the load drive's torque command: it is limited, lags
+    through the current loop (`load_state[0]` holds the torque it applies), and its bearing friction adds;
+    the sample's `tau_ext` is the torque it applies.
     """
     has_ff = ff.shape[0] > 0
     record = truth.shape[0] > 0
@@ -190,7 +204,18 @@ def run_cycles(
         out[c, C_T] = t0 + c * period
         out[c, C_U] = u
         out[c, C_I_CMD] = i_cmd
-        out[c, C_TAU] = tau_ext[c]
+        if load_drive[L_ON] != 0.0:
+            limit = load_drive[L_LIMIT]
+            asked = min(max(tau_ext[c], -limit), limit)
+            load_state[0] += load_drive[L_ALPHA] * (asked - load_state[0])
+            applied = load_state[0]
+            omega_l = x[X.OMEGA_L]
+            bearing = load_drive[L_COULOMB] * math.tanh(omega_l / load_drive[L_SMOOTH])
+            load_torque = applied + bearing + load_drive[L_VISCOUS] * omega_l
+        else:
+            applied = tau_ext[c]
+            load_torque = applied
+        out[c, C_TAU] = applied
         out[c, C_THETA_M] = theta_meas
         out[c, C_OMEGA_M] = omega_meas
         out[c, C_THETA_L] = x[X.THETA_L] + drive[D_LOAD_NOISE] * noise[c, 1]
@@ -201,7 +226,7 @@ def run_cycles(
             return c + 1, code
 
         held[:] = value
-        load[0] = tau_ext[c]
+        load[0] = load_torque
         k.integrate(p, flags, x, plant_mode, held, load, dt, decim, row_buf)
         if record:
             _truth_row(row_buf, t0 + c * period, truth[c])
@@ -242,6 +267,15 @@ class SimulatedDrive:
         self.control_state = np.zeros(N_CONTROL_STATE)
         self.sensor_state = np.zeros(2)
         self.rng = np.random.default_rng(sensors.seed)
+        ld = config.load_drive
+        self.load_drive = _NO_LOAD_DRIVE
+        if ld is not None:
+            bandwidth = ld.current_bandwidth_hz
+            lag = 1.0 - math.exp(-2 * math.pi * bandwidth * period) if bandwidth else 1.0
+            self.load_drive = np.array(
+                [1.0, lag, ld.torque_limit_nm, ld.coulomb_nm, ld.viscous_nms, LOAD_FRICTION_SMOOTH_RAD_S]
+            )
+        self.load_state = np.zeros(1)
         self.truth: list[np.ndarray] | None = None
         """Blocks of TRUTH_COLUMNS rows, one per cycle run, while `record_truth` is on (tests)."""
         self.reset_loops()
@@ -304,6 +338,8 @@ class SimulatedDrive:
             np.ascontiguousarray(feedforward.rows) if feedforward is not None else _NO_FEEDFORWARD,
             feedforward.measured_band_rad_s if feedforward is not None else 0.0,
             truth,
+            self.load_drive,
+            self.load_state,
         )
         if self.truth is not None:
             self.truth.append(truth[:rows])
