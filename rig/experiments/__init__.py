@@ -12,6 +12,7 @@ from rig.experiments.load_variation import LoadVariation
 from rig.experiments.position_friction import PositionFriction
 from rig.experiments.pulse import Pulse
 from rig.experiments.speed_sweep import SpeedSweep
+from rig.experiments.torsional_stiffness import TorsionalStiffness
 from rig.experiments.tracking import Ramp, Sine, Step
 from rig.experiments.warm_up import WarmUp
 
@@ -40,6 +41,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         Compensation(),
         Endurance(),
         WarmUp(),
+        TorsionalStiffness(),
     )
 }
 
