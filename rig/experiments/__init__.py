@@ -7,6 +7,7 @@ from model.errors import UserInputError
 from rig.experiments.base import Experiment
 from rig.experiments.chirp import Chirp
 from rig.experiments.compensation import Compensation
+from rig.experiments.efficiency_map import EfficiencyMap
 from rig.experiments.endurance import Endurance
 from rig.experiments.load_variation import LoadVariation
 from rig.experiments.position_friction import PositionFriction
@@ -42,6 +43,7 @@ EXPERIMENTS: dict[str, Experiment] = {
         Endurance(),
         WarmUp(),
         TorsionalStiffness(),
+        EfficiencyMap(),
     )
 }
 
