@@ -2,13 +2,13 @@
 
 A fit is two pipelines of stages:
 
-- the staged identification (`staged.STAGES`): each stage reads the runs of its own experiments, solves
+- the staged identification (`staged.PIPELINE`): each stage reads the runs of its own experiments, solves
   one MODEL.md equation by least squares and hands its answer (`dynamics_stage.Solved`: values, σ,
   notes) to the book, which believes or holds each parameter (`staged.StageEstimate`);
 - `identify`'s steps: a starting point (the staged stages' estimates, or what plain runs' columns
   determine), the joint refinement on trajectories with its held-out choice, then validation and report.
 
-A new staged stage is one object with the `Stage` protocol added to `staged.STAGES` (its name in
+A new staged stage is one object with the `Stage` protocol added to `staged.PIPELINE` (its name in
 `model.registry.STAGES`, so that the parameters' registry can say which stage determines them).
 """
 
