@@ -66,6 +66,8 @@ bench: install
 	$(BIN)/python bench/bench_gaps.py
 	$(BIN)/python bench/bench_service.py
 	$(BIN)/python bench/bench_endurance.py
+	$(BIN)/python bench/bench_thermal_trend.py
+	$(BIN)/python bench/bench_compensation_thermal.py
 	$(BIN)/python bench/bench_fleet.py
 
 # Renews the lock after a change of pyproject.toml's dependencies (--upgrade: the newest allowed versions).
