@@ -90,11 +90,13 @@ def test_torsional_stiffness_recovers_the_presets_stiffness_and_lost_motion() ->
     for name, truth in (("K1", ns.K1), ("K2", ns.K2), ("K3", ns.K3)):
         assert metrics[f"{name}_nm_per_rad"] == pytest.approx(truth, rel=0.05), name
     # Lost motion: both branches are the spring curve shifted by ±(T_h + f_cl), saturated near zero
-    # torque, so their midpoints at ±T_L lie on T/K1: 2·T_L/K1 (T_L = 3 % of T_R = 2.01 N·m inside T1). 10 %: done-when.
+    # torque, so their midpoints at ±T_L lie on T/K1: 2·T_L/K1 (T_L = 3 % of T_R = 2.01 N·m, inside T1).
+    # 10 %: the done-when.
     t_l = params.lost_motion_fraction * params.rated_torque_nm
     assert metrics["lost_motion_rad"] == pytest.approx(2 * t_l / ns.K1, rel=0.10)
     # Hysteresis loss: the branches' offsets at zero torque, ±(T_h + f_cl) (the Dahl element saturated, the
     # output bearing's Coulomb friction opposing the slow motion), apart by 2·(T_h + f_cl)/K1.
+    assert load.f_cl is not None
     assert metrics["hysteresis_loss_rad"] == pytest.approx(2 * (hyst.T_h + load.f_cl) / ns.K1, rel=0.10)
 
 
