@@ -117,6 +117,12 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=60.0, help="seconds of closed loop (default 60)")
     parser.add_argument("--amplitude", type=float, default=20.0, help="sine speed amplitude [rad/s] (20)")
     parser.add_argument("--frequency", type=float, default=0.1, help="sine frequency [Hz] (0.1)")
+    parser.add_argument(
+        "--rig", default=str(RIG), help="the virtual-can rig file (virtual-can-dyno: two drives)"
+    )
+    parser.add_argument(
+        "--load-nm", type=float, default=0.0, help="τ_ext for the whole run: a load drive's [N·m]"
+    )
     parser.add_argument("--daq-rate", type=float, help="DAQ sample rate [Hz] (default: the rig file's)")
     parser.add_argument("--daq-block", type=int, help="DAQ samples per frame (default: the rig file's)")
     parser.add_argument(
@@ -143,7 +149,8 @@ def main() -> None:
     if args.scheduling == "realtime":
         scheduling = realtime_scheduling(cpu=None if args.cpu < 0 else args.cpu)
 
-    config = load_rig_config(RIG)
+    rig_file = load_rig_config(args.rig)
+    config = rig_file
     daq = dict(config.extra.get("daq") or {})
     if args.daq_rate is not None:
         daq["rate_hz"] = args.daq_rate
@@ -157,7 +164,8 @@ def main() -> None:
     setpoint = args.amplitude * np.sin(2 * math.pi * args.frequency * t)
     stroke_out = 2 * args.amplitude / (2 * math.pi * args.frequency) * 0.01
     print(
-        f"Closed loop on {RIG.name}, paced: {config.sample_rate_hz:g} Hz SYNC for {args.duration:g} s,"
+        f"Closed loop on {rig_file.name}, τ_ext {args.load_nm:g} N·m, paced:"
+        f" {config.sample_rate_hz:g} Hz SYNC for {args.duration:g} s,"
         f" velocity ω = {args.amplitude:g}·sin(2π·{args.frequency:g}·t) rad/s (output sweeps"
         f" {stroke_out:.2f} rad)"
     )
@@ -183,7 +191,7 @@ def main() -> None:
         rig.enable()
         syncs_before = syncs_answered(rig)
         busy0, cpu0, wall0 = cpu_busy(), time.process_time(), time.monotonic()
-        result = rig.run_segment(Segment(ControlMode.VELOCITY, setpoint, 0.0, "sine"), blocks.append)
+        result = rig.run_segment(Segment(ControlMode.VELOCITY, setpoint, args.load_nm, "sine"), blocks.append)
         busy1, cpu1, wall1 = cpu_busy(), time.process_time(), time.monotonic()
         syncs = syncs_answered(rig) - syncs_before
         rig.disable()
