@@ -10,11 +10,14 @@ from rig.experiments.compensation import Compensation
 from rig.experiments.efficiency_map import EfficiencyMap
 from rig.experiments.endurance import Endurance
 from rig.experiments.load_variation import LoadVariation
+from rig.experiments.no_load_torque import NoLoadTorque
 from rig.experiments.position_friction import PositionFriction
 from rig.experiments.pulse import Pulse
 from rig.experiments.speed_sweep import SpeedSweep
+from rig.experiments.starting_torque import StartingTorque
 from rig.experiments.torsional_stiffness import TorsionalStiffness
 from rig.experiments.tracking import Ramp, Sine, Step
+from rig.experiments.transmission_accuracy import TransmissionAccuracy
 from rig.experiments.warm_up import WarmUp
 
 CAMPAIGN_ORDER: tuple[str, ...] = (
@@ -44,6 +47,9 @@ EXPERIMENTS: dict[str, Experiment] = {
         WarmUp(),
         TorsionalStiffness(),
         EfficiencyMap(),
+        NoLoadTorque(),
+        StartingTorque(),
+        TransmissionAccuracy(),
     )
 }
 
