@@ -109,14 +109,14 @@ class StartingTorque(Experiment):
         metrics: dict[str, float | int | str] = {f"starting_torque_{w}_nm": v for w, v in start.items()}
         if start:
             metrics["starting_torque_nm"] = float(np.mean(list(start.values())))
-        out, _, moved = self.back_drive(run, params)
-        if moved is None:
+        out, _, turned = self.back_drive(run, params)
+        if turned is None:
             notes.append(
                 f"the input did not turn under {params.back_drive_max_nm:g} N·m at the output:"
                 " raise back_drive_max_nm"
             )
         else:
-            metrics["back_driving_torque_nm"] = float(out[moved])
+            metrics["back_driving_torque_nm"] = float(out[turned])
         return Results(metrics=metrics, notes=notes)
 
     def plot(
