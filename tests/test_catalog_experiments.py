@@ -16,7 +16,10 @@ from rig.config import load_rig_config
 from rig.experiments import EXPERIMENTS
 from rig.experiments.base import Experiment, RigContext, segment_rows
 from rig.experiments.efficiency_map import EfficiencyMap, EfficiencyMapParams, point_label
+from rig.experiments.no_load_torque import NoLoadTorque, NoLoadTorqueParams
+from rig.experiments.starting_torque import StartingTorque, StartingTorqueParams
 from rig.experiments.torsional_stiffness import TorsionalStiffness, TorsionalStiffnessParams
+from rig.experiments.transmission_accuracy import TransmissionAccuracy, TransmissionAccuracyParams
 from rig.interface import ControlMode, Segment
 from sim_backend.inprocess import SimRig
 
@@ -50,7 +53,7 @@ def test_the_dyno_rig_files_load_with_their_load_drive_and_transducers() -> None
     assert set(rig.extra_columns) == {"temp_motor", "temp_gear", "tau_in", "tau_out"}
 
 
-@pytest.mark.parametrize("name", ["torsional-stiffness", "efficiency-map"])
+@pytest.mark.parametrize("name", ["torsional-stiffness", "efficiency-map", "starting-torque"])
 def test_a_bench_without_a_load_drive_refuses_the_load_side_tests_in_one_line(name: str) -> None:
     config = load_rig_config("sim")
     experiment = EXPERIMENTS[name]
@@ -59,7 +62,9 @@ def test_a_bench_without_a_load_drive_refuses_the_load_side_tests_in_one_line(na
         experiment.program(experiment.Params(), ctx)
     message = str(err.value)
     assert "\n" not in message
-    assert f"{name} needs a load drive" in message and "torque transducers" in message and "'sim'" in message
+    assert f"{name} needs a load drive" in message and "'sim'" in message
+    if name != "starting-torque":  # its back-driving half needs the load drive only
+        assert "torque transducers" in message
 
 
 def test_the_load_drive_limits_and_lags_its_torque_and_adds_its_rotor() -> None:
@@ -124,3 +129,57 @@ def test_efficiency_map_agrees_with_the_plants_power_balance_at_every_point() ->
         # Done-when of issue 26: within 1 percentage point at every grid point (measured: within 0.3).
         assert table["eta"][k] == pytest.approx(eta_truth, abs=0.01), (speed, load)
         assert 0 < table["eta_sigma"][k] < 0.01
+
+
+def test_no_load_torque_follows_the_presets_friction_law() -> None:
+    model = load_model("catalog-cha-25a-100")
+    mf, lf, r = model.motor_friction, model.load_friction, model.mechanics.r
+    config = load_rig_config("sim-catalog")
+    ld = config.load_drive
+    assert mf is not None and lf is not None and ld is not None
+    assert mf.s3 is not None and mf.k_v is not None and mf.v_c is not None
+    assert lf.f_cl is not None and lf.b_l is not None
+    params = NoLoadTorqueParams()
+    run, ctx, _ = play(NoLoadTorque(), params)
+    table = NoLoadTorque().analyze(run, params, ctx).tables["no_load_torque"]
+    for speed, fwd, bwd in zip(
+        table["speed_rad_s"], table["torque_fwd_nm"], table["torque_bwd_nm"], strict=True
+    ):
+        # docs/MODEL.md's moving branch (s1 = s2 = 0, no Fourier part) plus the output's friction (the gear's
+        # bearing and the load drive's) seen through r.
+        motor = mf.s3 * (1 + mf.k_v * (speed - mf.v_c))
+        output = lf.f_cl + lf.b_l * r * speed + ld.coulomb_nm + ld.viscous_nms * r * speed
+        # 2 %: the transducer's noise averaged over a second, the kinematic error's ripple in the output.
+        assert fwd == pytest.approx(motor + r * output, rel=0.02), speed
+        assert -bwd == pytest.approx(motor + r * output, rel=0.02), speed
+
+
+def test_starting_and_back_driving_torques_are_the_presets_breakaway_levels() -> None:
+    model = load_model("catalog-cha-25a-100")
+    mf, lf, r = model.motor_friction, model.load_friction, model.mechanics.r
+    assert mf is not None and lf is not None
+    assert mf.s3 is not None and mf.k_v is not None and mf.v_c is not None and lf.f_sl is not None
+    assert mf.static_factor is not None
+    params = StartingTorqueParams()
+    run, ctx, _ = play(StartingTorque(), params)
+    metrics = StartingTorque().analyze(run, params, ctx).metrics
+    # docs/MODEL.md: the stuck input breaks away at f_sm = static_factor·C·(1 − k_v·v_c) (no Fourier part).
+    f_sm = mf.static_factor * mf.s3 * (1 - mf.k_v * mf.v_c)
+    # 5 %: the straight line through the stuck stretch still carries the transducer's noise (≈ 2 % of it).
+    assert metrics["starting_torque_nm"] == pytest.approx(f_sm, rel=0.05)
+    # Back-driving: the output's static friction, and the input's breakaway seen through the ratio.
+    assert metrics["back_driving_torque_nm"] == pytest.approx(lf.f_sl + f_sm / r, rel=0.05)
+
+
+def test_transmission_accuracy_measures_the_presets_kinematic_error() -> None:
+    model = load_model("catalog-cha-25a-100")
+    ke = model.kinematic_error
+    assert ke is not None
+    params = TransmissionAccuracyParams()
+    run, ctx, _ = play(TransmissionAccuracy(), params)
+    metrics = TransmissionAccuracy().analyze(run, params, ctx).metrics
+    assert metrics["harmonic1_order"] == round(ke.k)
+    # The fitted order's amplitude is A (3 %: the output's inertia follows the ripple at a few Hz, far below
+    # its resonance); peak to peak is 2·A plus the output sensor's noise at the extremes (10 %).
+    assert metrics["harmonic1_amplitude_rad"] == pytest.approx(ke.A, rel=0.03)
+    assert metrics["error_pp_rad"] == pytest.approx(2 * ke.A, rel=0.10)

@@ -31,7 +31,7 @@ NAME = "transmission-accuracy"
 
 class TransmissionAccuracyParams(ExperimentParams):
     speed_rad_s: float = Field(
-        default=50.0, gt=0, le=SPEED_MAX_RAD_S, description="input speed, slow and steady [rad/s]"
+        default=10.0, gt=0, le=SPEED_MAX_RAD_S, description="input speed, slow and steady [rad/s]"
     )
     output_turns: float = Field(default=1.0, gt=0, le=100, description="output turns measured [turns]")
     settle_s: float = Field(default=0.5, gt=0, le=60, description="time to reach steady speed [s]")
