@@ -553,96 +553,148 @@ def stiffness_and_load_friction(parts: Sequence[SweepPart], model: HarmonicDrive
         out.notes.append("skipped: no steady sweep with a load angle on a compliant model")
         return out
     loads = {round(float(np.mean(part.mean(part.run["tau_ext"]))), 6) for part in used}
-    if len(loads) < 2:
-        # One load: the deflection is F_l/K_s, and only the windows' momentum (through the held J_l)
-        # would part K_s from the friction; that is no measurement of either.
-        out.notes.append("skipped: steady windows under one load only (no load-variation run)")
+    skipped = _stiffness_skipped(model, loads)
+    if skipped is not None:
+        out.notes.append(skipped)
         return out
-    if model.hysteresis is not None:
-        out.notes.append("skipped: the spring torque carries the hysteresis element's ±T_h (not modelled)")
-        return out
-    names = stiffness_names(model) + load_friction_names(model)
-    if (ns := model.nonlinear_stiffness) is not None:
-        # A segment's stiffness is seen only if some load passes into it (by 10 % of its breakpoint).
-        reach = max(abs(tau) for tau in loads)
-        for name, breakpoint in (("K2", ns.T1), ("K3", ns.T2)):
-            if reach < 1.1 * breakpoint:
-                names.remove(name)
-                out.undetermined[name] = (
-                    f"loads up to {reach:g} N·m do not pass its breakpoint {breakpoint:g} N·m"
-                )
-    # Fitted with them, reported as metrics only (see above): the load sensor's zero, J_l, A; each with
-    # its start, scale and lower bound.
-    ke = model.kinematic_error
-    J_l = model.mechanics.J_l
-    nuisance = {"theta_l_offset": (0.0, 1e-5, -np.inf), "J_l": (J_l, J_l, 0.0)}
-    if ke is not None:
-        nuisance["A"] = (ke.A, ke.A, 0.0)
-    # By run (a load-variation run holds one part per load): the motions over each sample's span.
-    spans: dict[int, tuple[np.ndarray, np.ndarray, SpanMotion]] = {}
-    for part in used:
-        if id(part.run) not in spans:
-            edges, at = span_instants(part.run, model)
-            motor, load = (span_motion(part.run, column, edges, at) for column in ("theta_m", "theta_l"))
-            wave = np.zeros_like(at) if ke is None else np.sin(ke.k * motor.angle + ke.phi)
-            spans[id(part.run)] = (deflection_of(model, motor.angle, load.angle), wave, load)
-
-    clear = [part.steady & sign_seen(part, spans[id(part.run)][2]) for part in used]
-    unseen = sum(int(np.count_nonzero(part.steady & ~ok)) for part, ok in zip(used, clear, strict=True))
-    loads_nm = [window_means(part, part.run["tau_ext"]) for part in used]
-    accels = [window_means(part, spans[id(part.run)][2].accel) for part in used]
-    scale_nm = 1e-3  # residuals in mN·m: the unit of the fit's conditioning, not of its result
-
-    f_sl = model.load_friction.f_sl if model.load_friction is not None else None
-
-    def residual(x: np.ndarray) -> np.ndarray:
-        values = dict(zip(names, x[: len(names)], strict=True))
-        if "f_cl" in values and f_sl is not None:
-            values["f_sl"] = max(f_sl, values["f_cl"])  # the schema keeps static ≥ Coulomb
-        trial = with_values(model, values)
-        extra = dict(zip(nuisance, x[len(names) :], strict=True))
-        error_change = extra["A"] - ke.A if ke is not None else 0.0
-        balance = {
-            run: spring_torque(trial, bent + error_change * wave - extra["theta_l_offset"]).mean(axis=1)
-            - load_friction_steady(trial, load.speed).mean(axis=1)
-            for run, (bent, wave, load) in spans.items()
-        }
-        return np.concatenate(
-            [
-                ((window_means(part, balance[id(part.run)]) - tau - extra["J_l"] * accel) / scale_nm)[ok]
-                for part, tau, accel, ok in zip(used, loads_nm, accels, clear, strict=True)
-            ]
-        )
-
+    names = _stiffness_seen(model, loads, out.undetermined) + load_friction_names(model)
+    nuisance = _stiffness_nuisance(model)
+    balance = WindowBalance(used, span_motions(used, model), model, names, nuisance)
     start = list(get_values(model, names).values())
     starts, scales, lows = zip(*nuisance.values(), strict=True)
     solved = nonlinear_fit(
-        residual,
+        balance.residual,
         [*names, *nuisance],
         [*start, *starts],
         [*(abs(v) or 1.0 for v in start), *scales],
         lower=[1e-9 if name.startswith("K") else 0.0 for name in names] + list(lows),
         unequal_rows=True,
     )
-    windows = sum(int(np.count_nonzero(ok)) for ok in clear)
     for name in nuisance:
         solved.metrics[name] = solved.values.pop(name)
         solved.metrics[name + "_std"] = solved.std_errors.pop(name)
+    solved.notes.append(_stiffness_note(solved, nuisance, balance))
+    return solved
+
+
+def _stiffness_skipped(model: HarmonicDriveModel, loads: set[float]) -> str | None:
+    """Why the windows' loads cannot part the stiffness from the load's friction, if they cannot."""
+    if len(loads) < 2:
+        # One load: the deflection is F_l/K_s, and only the windows' momentum (through the held J_l)
+        # would part K_s from the friction; that is no measurement of either.
+        return "skipped: steady windows under one load only (no load-variation run)"
+    if model.hysteresis is not None:
+        return "skipped: the spring torque carries the hysteresis element's ±T_h (not modelled)"
+    return None
+
+
+def _stiffness_seen(model: HarmonicDriveModel, loads: set[float], undetermined: dict[str, str]) -> list[str]:
+    """The stiffness parameters the loads reach; each segment not reached goes into `undetermined`."""
+    names = stiffness_names(model)
+    if (ns := model.nonlinear_stiffness) is not None:
+        # A segment's stiffness is seen only if some load passes into it (by 10 % of its breakpoint).
+        reach = max(abs(tau) for tau in loads)
+        for name, breakpoint in (("K2", ns.T1), ("K3", ns.T2)):
+            if reach < 1.1 * breakpoint:
+                names.remove(name)
+                undetermined[name] = (
+                    f"loads up to {reach:g} N·m do not pass its breakpoint {breakpoint:g} N·m"
+                )
+    return names
+
+
+def _stiffness_nuisance(model: HarmonicDriveModel) -> dict[str, tuple[float, float, float]]:
+    """Fitted with the stiffness, reported as metrics only (see `stiffness_and_load_friction`): the load
+    sensor's zero, J_l, A; each with its start, scale and lower bound."""
+    ke = model.kinematic_error
+    J_l = model.mechanics.J_l
+    nuisance = {"theta_l_offset": (0.0, 1e-5, -np.inf), "J_l": (J_l, J_l, 0.0)}
+    if ke is not None:
+        nuisance["A"] = (ke.A, ke.A, 0.0)
+    return nuisance
+
+
+Spans = dict[int, tuple[np.ndarray, np.ndarray, SpanMotion]]
+"""By run (`id`): the deflection and the kinematic error's wave over each sample's span, and the load's
+motion."""
+
+
+def span_motions(used: Sequence[SweepPart], model: HarmonicDriveModel) -> Spans:
+    """By run (a load-variation run holds one part per load): the motions over each sample's span."""
+    ke = model.kinematic_error
+    spans: Spans = {}
+    for part in used:
+        if id(part.run) not in spans:
+            edges, at = span_instants(part.run, model)
+            motor, load = (span_motion(part.run, column, edges, at) for column in ("theta_m", "theta_l"))
+            wave = np.zeros_like(at) if ke is None else np.sin(ke.k * motor.angle + ke.phi)
+            spans[id(part.run)] = (deflection_of(model, motor.angle, load.angle), wave, load)
+    return spans
+
+
+class WindowBalance:
+    """The load's momentum balance of every clear steady window, as a residual of the fitted values
+    (`names`, then the nuisance's) in mN·m."""
+
+    SCALE_NM = 1e-3  # residuals in mN·m: the unit of the fit's conditioning, not of its result
+
+    def __init__(
+        self,
+        used: list[SweepPart],
+        spans: Spans,
+        model: HarmonicDriveModel,
+        names: list[str],
+        nuisance: dict[str, tuple[float, float, float]],
+    ) -> None:
+        self.used, self.spans, self.model, self.names, self.nuisance = used, spans, model, names, nuisance
+        self.clear = [part.steady & sign_seen(part, spans[id(part.run)][2]) for part in used]
+        self.unseen = sum(
+            int(np.count_nonzero(part.steady & ~ok)) for part, ok in zip(used, self.clear, strict=True)
+        )
+        self.windows = sum(int(np.count_nonzero(ok)) for ok in self.clear)
+        self.loads_nm = [window_means(part, part.run["tau_ext"]) for part in used]
+        self.accels = [window_means(part, spans[id(part.run)][2].accel) for part in used]
+        self.f_sl = model.load_friction.f_sl if model.load_friction is not None else None
+
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        names, ke = self.names, self.model.kinematic_error
+        values = dict(zip(names, x[: len(names)], strict=True))
+        if "f_cl" in values and self.f_sl is not None:
+            values["f_sl"] = max(self.f_sl, values["f_cl"])  # the schema keeps static ≥ Coulomb
+        trial = with_values(self.model, values)
+        extra = dict(zip(self.nuisance, x[len(names) :], strict=True))
+        error_change = extra["A"] - ke.A if ke is not None else 0.0
+        balance = {
+            run: spring_torque(trial, bent + error_change * wave - extra["theta_l_offset"]).mean(axis=1)
+            - load_friction_steady(trial, load.speed).mean(axis=1)
+            for run, (bent, wave, load) in self.spans.items()
+        }
+        rows = zip(self.used, self.loads_nm, self.accels, self.clear, strict=True)
+        return np.concatenate(
+            [
+                ((window_means(part, balance[id(part.run)]) - tau - extra["J_l"] * accel) / self.SCALE_NM)[ok]
+                for part, tau, accel, ok in rows
+            ]
+        )
+
+
+def _stiffness_note(
+    solved: Solved, nuisance: dict[str, tuple[float, float, float]], balance: WindowBalance
+) -> str:
     seen = ", ".join(
         f"{name} = {solved.metrics[name]:.4g} ± {solved.metrics[name + '_std']:.2g}" for name in nuisance
     )
-    solved.notes.append(
-        f"mean spring torque = τ_ext + F_l + J_l·Δω_l/T over {windows} steady windows, each sample's span"
-        f" seen at instants between samples, the windows' edges ramped over {TAPER_S * 1e3:g} ms;"
+    return (
+        f"mean spring torque = τ_ext + F_l + J_l·Δω_l/T over {balance.windows} steady windows, each sample's"
+        f" span seen at instants between samples, the windows' edges ramped over {TAPER_S * 1e3:g} ms;"
         f" fitted with them, not used: {seen}"
         + (
-            f"; {unseen} window(s) left out where the load's speed came within {SPEED_BAND_SIGMAS:g}σ of its"
-            " noise of zero (the sign of its friction is not seen there)"
-            if unseen
+            f"; {balance.unseen} window(s) left out where the load's speed came within {SPEED_BAND_SIGMAS:g}σ"
+            " of its noise of zero (the sign of its friction is not seen there)"
+            if balance.unseen
             else ""
         )
     )
-    return solved
 
 
 # --- stage: frequency response ------------------------------------------------------------------------------

@@ -181,67 +181,15 @@ def velocity_friction(
         out.notes.append("skipped: no steady window in a speed sweep")
         return out
     names = velocity_names(model)
+    misfit = WindowTorques(used, model)
     mech = model.mechanics
-    spans: dict[int, tuple[SpanMotion, SpanMotion | None]] = {}  # by run: a load-variation run has 4 parts
-    fixed = []
-    for part in used:
-        run = part.run
-        if id(run) not in spans:
-            edges, at = span_instants(run, model)
-            load_seen = "theta_l" in run and not model.rigid
-            spans[id(run)] = (
-                span_motion(run, "theta_m", edges, at),
-                span_motion(run, "theta_l", edges, at) if load_seen else None,
-            )
-        motor, load = spans[id(run)]
-        drive = held_over_spans(part.ctx.torque_constant_nm_per_a * run["i_a"])
-        tau = window_means(part, run["tau_ext"])
-        t_s = float(np.mean(tau))  # what a load-dependent friction sees: T_s ≈ τ_ext (F_l is small beside it)
-        measured = window_means(part, drive - mech.J_m * motor.accel) - mech.r * tau
-        load_accel = window_means(part, mech.r * load.accel) if load is not None else np.zeros_like(tau)
-        fixed.append((part, measured, load_accel, t_s))
-    # J_l, fitted with the windows and not reported (as in the stiffness stage): the FRF's is too far
-    # off for r·J_l·Δω_l/T of the ringing load, which biased k_v by several σ (docs/BENCHMARKS.md).
-    nuisance = ["J_l"] if any(load is not None for _, load in spans.values()) else []
-    count = sum(int(np.count_nonzero(p.steady)) for p in used)
-    scale_nm = 1e-5  # residuals in 10 µN·m: the unit of the fit's conditioning, not of its result
-
-    def misfit(values: dict[str, float]) -> np.ndarray:
-        """Measured minus model torque per steady window [N·m], at the law's values (and J_l's)."""
-        law = {name: value for name, value in values.items() if name != "J_l"}
-        J_l = values.get("J_l", 0.0)
-        try:
-            trial = with_values(model, law)
-        except UserInputError:
-            return np.full(count, 1.0)
-        plant = Plant(trial)
-        pieces = []
-        totals: dict[tuple[int, float], np.ndarray] = {}  # by run and T_s (when the friction depends on it)
-        for part, measured, load_accel, t_s in fixed:
-            key = (id(part.run), abs(t_s) if trial.load_dependent_friction is not None else 0.0)
-            if key not in totals:
-                motor, load = spans[id(part.run)]
-                # F_m is smooth at the instants' scale (its 10th harmonic at 200 rad/s: 2 rad a sample),
-                # so every `stride`-th instant, still evenly spread, is enough for it.
-                instants = motor.angle.shape[1]
-                stride = max(1, instants // FRICTION_INSTANTS)
-                pick = slice(stride // 2, None, stride)
-                angle, speed = motor.angle[:, pick], motor.speed[:, pick]
-                friction = k.steady_motor_friction(
-                    plant.p, plant.flags, angle.ravel(), speed.ravel(), key[1], 0.0
-                ).reshape(angle.shape)
-                load_speed = load.speed if load is not None else mech.r * motor.speed
-                totals[key] = friction.mean(axis=1) + mech.r * load_friction_steady(trial, load_speed).mean(
-                    axis=1
-                )
-            pieces.append((measured - J_l * load_accel - window_means(part, totals[key]))[part.steady])
-        return np.concatenate(pieces)
-
+    nuisance = misfit.nuisance
     start = get_values(model, names)
     fitted = [*names, *nuisance]
     scale = [abs(v) if v else 1e-3 for v in start.values()] + [mech.J_l] * len(nuisance)
     lower = [-np.inf if n in SIGNED else 0.0 for n in names] + [0.0] * len(nuisance)
     x0 = list(start.values()) + [mech.J_l] * len(nuisance)
+    scale_nm = WindowTorques.SCALE_NM
     out = nonlinear_fit(
         lambda x: misfit(dict(zip(fitted, x, strict=True))) / scale_nm, fitted, x0, scale, lower=lower
     )
@@ -251,22 +199,95 @@ def velocity_friction(
     for name in nuisance:
         out.metrics[name] = out.values.pop(name)
         out.metrics[name + "_std"] = out.std_errors.pop(name)
-    speeds = sorted({abs(float(w)) for p in used for w in p.omega_set[p.steady]})
-    dropped = sorted({abs(float(w)) for p in used for w in p.omega_set[~p.steady]})
-    out.notes.append(
-        f"{count} steady windows at {', '.join(f'{s:g}' for s in speeds)} rad/s"
-        + (
-            f"; dropped (motor or load running backwards): {', '.join(f'{s:g}' for s in dropped)} rad/s"
-            if dropped
-            else ""
-        )
-    )
+    out.notes.append(_windows_note(used, misfit.count))
     left = misfit({**{n: out.values[n] for n in names}, **{n: out.metrics[n] for n in nuisance}})
-    direction = np.concatenate([np.sign(p.omega_set[p.steady]) for p, _, _, _ in fixed])
+    direction = np.concatenate([np.sign(p.omega_set[p.steady]) for p, _, _, _ in misfit.fixed])
     if np.any(direction > 0) and np.any(direction < 0):
         # What the fitted law leaves, forward against backward: direction asymmetry, as a metric.
         out.metrics["asymmetry_nm"] = 0.5 * float(np.mean(left[direction > 0]) + np.mean(left[direction < 0]))
     return out
+
+
+class WindowTorques:
+    """Measured minus model motor torque per steady window [N·m], a function of the law's values (and
+    J_l's, when the load's angle is seen: `nuisance`)."""
+
+    SCALE_NM = 1e-5  # residuals in 10 µN·m: the unit of the fit's conditioning, not of its result
+
+    def __init__(self, used: list[SweepPart], model: HarmonicDriveModel) -> None:
+        self.model = model
+        mech = model.mechanics
+        # by run: a load-variation run has 4 parts
+        self.spans: dict[int, tuple[SpanMotion, SpanMotion | None]] = {}
+        self.fixed: list[tuple[SweepPart, np.ndarray, np.ndarray, float]] = []  # a window's measured rows
+        for part in used:
+            run = part.run
+            if id(run) not in self.spans:
+                edges, at = span_instants(run, model)
+                load_seen = "theta_l" in run and not model.rigid
+                self.spans[id(run)] = (
+                    span_motion(run, "theta_m", edges, at),
+                    span_motion(run, "theta_l", edges, at) if load_seen else None,
+                )
+            motor, load = self.spans[id(run)]
+            drive = held_over_spans(part.ctx.torque_constant_nm_per_a * run["i_a"])
+            tau = window_means(part, run["tau_ext"])
+            t_s = float(
+                np.mean(tau)
+            )  # what a load-dependent friction sees: T_s ≈ τ_ext (F_l is small beside it)
+            measured = window_means(part, drive - mech.J_m * motor.accel) - mech.r * tau
+            load_accel = window_means(part, mech.r * load.accel) if load is not None else np.zeros_like(tau)
+            self.fixed.append((part, measured, load_accel, t_s))
+        # J_l, fitted with the windows and not reported (as in the stiffness stage): the FRF's is too far
+        # off for r·J_l·Δω_l/T of the ringing load, which biased k_v by several σ (docs/BENCHMARKS.md).
+        self.nuisance = ["J_l"] if any(load is not None for _, load in self.spans.values()) else []
+        self.count = sum(int(np.count_nonzero(p.steady)) for p in used)
+
+    def __call__(self, values: dict[str, float]) -> np.ndarray:
+        law = {name: value for name, value in values.items() if name != "J_l"}
+        J_l = values.get("J_l", 0.0)
+        try:
+            trial = with_values(self.model, law)
+        except UserInputError:
+            return np.full(self.count, 1.0)
+        plant = Plant(trial)
+        pieces = []
+        totals: dict[tuple[int, float], np.ndarray] = {}  # by run and T_s (when the friction depends on it)
+        for part, measured, load_accel, t_s in self.fixed:
+            key = (id(part.run), abs(t_s) if trial.load_dependent_friction is not None else 0.0)
+            if key not in totals:
+                totals[key] = self._friction(plant, trial, key)
+            pieces.append((measured - J_l * load_accel - window_means(part, totals[key]))[part.steady])
+        return np.concatenate(pieces)
+
+    def _friction(self, plant: Plant, trial: HarmonicDriveModel, key: tuple[int, float]) -> np.ndarray:
+        """F_m + r·F_l of one run at each sample, averaged over its span's instants (at T_s = key[1])."""
+        mech = self.model.mechanics
+        motor, load = self.spans[key[0]]
+        # F_m is smooth at the instants' scale (its 10th harmonic at 200 rad/s: 2 rad a sample),
+        # so every `stride`-th instant, still evenly spread, is enough for it.
+        instants = motor.angle.shape[1]
+        stride = max(1, instants // FRICTION_INSTANTS)
+        pick = slice(stride // 2, None, stride)
+        angle, speed = motor.angle[:, pick], motor.speed[:, pick]
+        friction = k.steady_motor_friction(
+            plant.p, plant.flags, angle.ravel(), speed.ravel(), key[1], 0.0
+        ).reshape(angle.shape)
+        load_speed = load.speed if load is not None else mech.r * motor.speed
+        return np.asarray(
+            friction.mean(axis=1) + mech.r * load_friction_steady(trial, load_speed).mean(axis=1)
+        )
+
+
+def _windows_note(used: list[SweepPart], count: int) -> str:
+    """The windows' speeds, and those dropped."""
+    speeds = sorted({abs(float(w)) for p in used for w in p.omega_set[p.steady]})
+    dropped = sorted({abs(float(w)) for p in used for w in p.omega_set[~p.steady]})
+    return f"{count} steady windows at {', '.join(f'{s:g}' for s in speeds)} rad/s" + (
+        f"; dropped (motor or load running backwards): {', '.join(f'{s:g}' for s in dropped)} rad/s"
+        if dropped
+        else ""
+    )
 
 
 # --- stage: breakaway -------------------------------------------------------------------------------------
