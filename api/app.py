@@ -46,7 +46,6 @@ from api.schemas import (
     KeyRequest,
     ModelUpload,
     NewKey,
-    RigHealth,
     RigStatus,
     RunListQuery,
     RunRequest,
@@ -60,8 +59,9 @@ from rig.config import RigConfig
 from rig.core import access, actions, operations
 from rig.core.access import AuditEntry, KeyInfo, Role
 from rig.core.actions import UnknownJobError
-from rig.core.documents import ExperimentInfo, JobDocument, JobKind, JobStatus, RunDocument
+from rig.core.documents import ExperimentInfo, JobDocument, JobKind, RunDocument
 from rig.core.events import Event, EventKind
+from rig.core.rig_status import rig_status_of
 from rig.core.worker import AnalysisWorker, Job, RigWorker
 from rig.lab import ServedApp
 from rig.status import RunStatus
@@ -220,26 +220,7 @@ def logout(request: Request, who: Viewer) -> Response:
 
 @_route("rig_status", response_model=RigStatus)
 def rig_status(request: Request, who: Viewer) -> RigStatus:
-    worker = _worker(request)
-    config: RigConfig = worker.config
-    state = worker.rig.health()
-    jobs = worker.jobs()
-    running = next((job for job in jobs if job.status == JobStatus.RUNNING), None)
-    current = None
-    if running is not None and running.runs:
-        current = worker.live_run(running.runs[-1])
-    return RigStatus(
-        name=config.name,
-        backend=config.backend,
-        mode="sim" if worker.rig.source == "sim" else "hardware",
-        pace=config.pace if worker.rig.source == "sim" else None,
-        state=str(worker.state),
-        health=RigHealth(enabled=state.enabled, faults=list(state.faults), last_abort=state.last_abort),
-        limits=config.limits.model_dump(mode="json"),
-        sample_rate_hz=config.sample_rate_hz,
-        current_run=current,
-        queued=[job.id for job in jobs if job.status == JobStatus.QUEUED],
-    )
+    return rig_status_of(_worker(request))
 
 
 async def _on_stop_lane(request: Request, call: Callable[..., Any], *args: Any) -> Any:

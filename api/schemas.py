@@ -1,15 +1,16 @@
 """Request and response bodies of the service that are not the core's documents (`rig.core.documents`)
-nor the operations' request models (`rig.core.operations`, re-exported here)."""
+nor the operations' request models (`rig.core.operations`) and the rig's status (`rig.core.rig_status`),
+re-exported here."""
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictStr
 
 from rig.core.access import Role
-from rig.core.documents import RunDocument
 from rig.core.operations import AnalysisRequest, KeyRequest, ModelUpload, Request, RunRequest
+from rig.core.rig_status import RigHealth, RigStatus
 from rig.store.catalog import DEFAULT_PAGE, MAX_PAGE
 from rig.store.runs import RunQuery
 
@@ -34,27 +35,6 @@ class RunListQuery(RunQuery):
 
 class Health(BaseModel):
     status: Literal["ok"] = "ok"
-
-
-class RigHealth(BaseModel):
-    enabled: bool = Field(description="the drive is enabled (the motor may move)")
-    faults: list[str] = Field(description="the faults the devices report now")
-    last_abort: str | None = Field(description="why the last run aborted, if one did")
-
-
-class RigStatus(BaseModel):
-    """The rig this service drives."""
-
-    name: str = Field(description="the rig config's name")
-    backend: str = Field(description="the backend from the rig config (`sim`, `canopen`...)")
-    mode: Literal["sim", "hardware"] = Field(description="a simulated plant or real hardware")
-    pace: str | None = Field(default=None, description="sim: `virtual` (as fast as it can) or `realtime`")
-    state: str = Field(description="the worker: idle, running, stopping, faulted, closed")
-    health: RigHealth
-    limits: dict[str, Any] = Field(description="the safety envelope (trip levels) from the rig config")
-    sample_rate_hz: float = Field(description="the control and sampling rate [Hz]")
-    current_run: RunDocument | None = Field(description="the run in progress, if any")
-    queued: list[str] = Field(description="ids of the jobs waiting for the rig, oldest first")
 
 
 class SessionRequest(Request):

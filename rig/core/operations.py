@@ -36,6 +36,7 @@ from rig.core.documents import (
     RunPlan,
     TrendDocument,
 )
+from rig.core.rig_status import RigStatus, rig_status_of
 from rig.core.worker import AnalysisWorker, Job, RigWorker
 from rig.interface import Rig
 from rig.runner import Progress
@@ -252,8 +253,8 @@ OPERATIONS: tuple[Operation, ...] = (
         "rig_status",
         "the rig, its state and health",
         None,
-        RigWorker.live_run,
-        "RigStatus",
+        rig_status_of,
+        RigStatus,
         Role.VIEWER,
         rest=("GET", "/rig"),
         client="rig",
@@ -264,7 +265,7 @@ OPERATIONS: tuple[Operation, ...] = (
         "stop everything now",
         None,
         RigWorker.quick_stop,
-        "RigStatus",
+        RigStatus,
         Role.OPERATOR,
         rest=("POST", "/rig/stop"),
         client="stop",
@@ -276,7 +277,7 @@ OPERATIONS: tuple[Operation, ...] = (
         "leave the faulted state",
         None,
         RigWorker.reset,
-        "RigStatus",
+        RigStatus,
         Role.OPERATOR,
         rest=("POST", "/rig/reset"),
         client="reset",
