@@ -322,3 +322,25 @@ def test_canopens_own_master_drives_the_load_twin_beside_the_axis_twin(
     assert (state, mode) == ("OPERATION ENABLED", "CYCLIC SYNCHRONOUS TORQUE")
     assert twin.tau_ext_nm == pytest.approx(-permille / 1000 * load.rated_torque_nm)
     assert decode_statusword(axis_status) == State.SWITCH_ON_DISABLED  # the axis answered beside it
+
+
+def test_a_trip_of_the_load_drive_quick_stops_both() -> None:
+    """The load drive's own envelope, checked by the host every cycle: its shaft (the output) turning
+    at 0.05 rad/s (the axis at 5 rad/s through 100:1), above a 0.04 rad/s trip."""
+    config = in_process(load_rig_config(DYNO))
+    data = config.extra["canopen"]
+    entry = {**data["drives"][0], "velocity_limit_rad_s": 0.03, "velocity_trip_rad_s": 0.04}
+    rig = VirtualCanRig(
+        RigConfig.model_validate({**config.model_dump(), "canopen": {**data, "drives": [entry]}})
+    )
+    try:
+        rig.enable()
+        tau = np.concatenate([np.zeros(50), np.full(150, 5.0)])
+        with pytest.raises(RigFaultError, match="velocity_trip_rad_s") as info:
+            rig.run_segment(Segment(ControlMode.VELOCITY, np.full(200, 5.0), tau, "trip"), lambda b: None)
+        assert "\n" not in str(info.value)
+        assert rig.twin is not None and rig.load_twin is not None
+        assert rig.twin.state != State.OPERATION_ENABLED
+        assert rig.load_twin.state != State.OPERATION_ENABLED and rig.load_twin.torque_nm == 0.0
+    finally:
+        rig.close()
