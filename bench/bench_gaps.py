@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from hdrig_testing.hidden_effects import HIDDEN, Case, hidden_case, record_probe
+from hdrig_testing.hidden_effects import HIDDEN, Case, carried_at_zero_case, hidden_case, record_probe
 from hdrig_testing.independent_plant import IndependentRig, lab_profile
 from model.run import Run
 from rig.analysis.gaps import find_gaps
@@ -65,6 +65,18 @@ INDEPENDENT_EFFECTS = (
 )
 """The effects the independent generator implements (it refuses the others' model sections)."""
 PAIR = ("stribeck", "position_periodic_friction")
+
+
+def issue_classes(strength: float) -> list[tuple[str, Case]]:
+    """The two classes issue 25 adds, on both generators: load-side friction hidden while the model carries
+    its section at zero (an effect at zero is a candidate), and the Stribeck + position-periodic pair on
+    a flexible joint (Stribeck told from static friction when it comes with another effect)."""
+    return [
+        (f"load_side_friction(at zero)@{strength:g}", carried_at_zero_case(strength)),
+        (f"{'+'.join(PAIR)}(compliant)@{strength:g}", hidden_case(PAIR, strength, compliant=True)),
+    ]
+
+
 MOST = 0.5
 """'Most of its excess gap removed': at least this share of the gap above the null floor."""
 
@@ -88,6 +100,7 @@ class Row:
     sindy: Outcome | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     generator: str = "sim rig"
+    label: str = ""  # the class the per-effect table groups by: the effect(s), or an issue's class
     compliant: bool = False
     floor: float = math.nan  # the null cases' median gap for this generator and rigidity [rad]
 
@@ -309,6 +322,9 @@ def suite(strengths: list[float], seeds: list[int]) -> list[tuple[str, Case, int
         for strength in strengths:
             for seed in seeds:
                 cases.append((f"{effect}@{strength:g}", hidden_case((effect,), strength), seed))
+    for strength in strengths:
+        for seed in seeds:
+            cases += [(name, case, seed) for name, case in issue_classes(strength)]
     for compliant in (False, True):
         for seed in seeds + [s + 100 for s in seeds]:
             cases.append(
@@ -323,6 +339,9 @@ def independent_suite(strengths: list[float], seeds: list[int]) -> list[tuple[st
         for strength in strengths:
             for seed in seeds:
                 cases.append((f"{'+'.join(effects)}@{strength:g}", hidden_case(effects, strength), seed))
+    for strength in strengths:
+        for seed in seeds:
+            cases += [(name, case, seed) for name, case in issue_classes(strength)]
     for compliant in (False, True):
         for seed in seeds + [s + 100 for s in seeds]:
             cases.append(
@@ -386,8 +405,8 @@ def _per_effect(rows: list[Row], have_sindy: bool) -> None:
     print("|---|---|---|---|---|---|---|---|")
     for generator in dict.fromkeys(r.generator for r in rows):
         mine = [r for r in rows if r.generator == generator]
-        for effect in dict.fromkeys([*(r.effect for r in mine if r.hidden), "null"]):
-            group = [r for r in mine if r.effect == effect]
+        for effect in dict.fromkeys([*(r.label or r.effect for r in mine if r.hidden), "null"]):
+            group = [r for r in mine if (r.label or r.effect) == effect]
             if effect == "null":
                 ours = f"{sum(not r.ours.named for r in group)}/{len(group)} clean"
                 sindy = f"{sum(not r.sindy.named for r in group if r.sindy)}/{len(group)} clean"
@@ -469,6 +488,7 @@ def main() -> int:
         effect = "+".join(case.hidden) if case.hidden else "null"
         row = Row(name, effect, run_ours(case, run), run_sindy(case, run) if have_sindy else None)
         row.generator, row.compliant = generator, not case.model.rigid
+        row.label = name.rsplit("@", 1)[0] if "(" in name else ""
         rows.append(row)
         sindy = f"  sindy {row.sindy.named or '-'}" if row.sindy else ""
         print(

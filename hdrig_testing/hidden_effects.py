@@ -253,3 +253,14 @@ def hidden_case(effects: tuple[str, ...], strength: float = 1.0, compliant: bool
         merge_sections(model, name=f"model-{name}"),
         sensor,
     )
+
+
+ZERO_LOAD_FRICTION = {"load_law": "coulomb_viscous", "f_cl": 0.0, "f_sl": 0.0, "b_l": 0.0}
+
+
+def carried_at_zero_case(strength: float = 1.0) -> Case:
+    """Load-side friction hidden while the model carries its section at zero (f_cl = f_sl = b_l = 0), as
+    a model file that lists every section does (issue 25): an effect at zero is still a candidate."""
+    case = hidden_case(("load_side_friction",), strength)
+    model = merge_sections(case.model, name="model-load_side_friction@zero", load_friction=ZERO_LOAD_FRICTION)
+    return Case("load_side_friction@zero", case.hidden, case.truth, model, case.load_sensor)

@@ -19,7 +19,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hdrig_testing.hidden_effects import HIDDEN, Case, hidden_case, record_open_loop, record_probe
+from hdrig_testing.hidden_effects import (
+    HIDDEN,
+    Case,
+    carried_at_zero_case,
+    hidden_case,
+    record_open_loop,
+    record_probe,
+)
 from hdrig_testing.independent_plant import IndependentRig, lab_profile
 from model.params import load_model, save_model
 from rig.analysis.gaps import METRIC, GapsResult, find_gaps
@@ -233,3 +240,29 @@ def test_effects_that_only_explain_the_data_together_are_found_as_a_pair():
     assert result.steps[0].gap_after < result.steps[0].gap_before
     assert result.steps[1].gap_after < result.steps[1].gap_before
     assert result.initial_gap / result.final_gap >= 2.0
+
+
+# --- issue 25's two classes, on both generators ----------------------------------------------------------
+
+
+def _issue_case(name: str) -> Case:
+    if name == "at_zero":
+        return carried_at_zero_case()
+    return hidden_case(("stribeck", "position_periodic_friction"), compliant=True)
+
+
+@pytest.mark.parametrize("generator", ["sim", "independent"])
+@pytest.mark.parametrize("name", ["at_zero", "pair_compliant"])
+def test_issue_25_classes_are_named_on_both_generators(name: str, generator: str):
+    """Load-side friction hidden while the model carries f_cl = f_sl = b_l = 0 (an effect at zero is a
+    candidate; it was never tried before), and Stribeck with position-periodic friction on a flexible
+    joint (Stribeck, not static friction, named beside the periodic part)."""
+    case = _issue_case(name)
+    if generator == "sim":
+        run = record_probe(case.truth, DURATION_S, load_sensor=case.load_sensor)
+    else:
+        setpoint, load = lab_profile(INDEPENDENT_S)
+        run = IndependentRig(case.truth, seed=1).record(setpoint, load, with_load=case.load_sensor)
+    result = find_gaps([run], case.model)
+    assert sorted(s.effect for s in result.steps) == sorted(case.hidden), result.verdict
+    assert result.final_gap < result.initial_gap

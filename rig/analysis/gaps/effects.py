@@ -160,6 +160,30 @@ class Context:
         return get_values(self.model, [name])[name]
 
 
+STRENGTHS: dict[str, tuple[str, ...]] = {
+    "stribeck": ("f_st",),
+    "direction_asymmetry": ("f_dir",),
+    "load_dependent_friction": ("c_Ts",),
+    "thermal_drift": ("d_th",),
+    "load_friction": ("f_cl", "f_sl", "b_l"),
+}
+"""The fields that make a section act: with all of them at zero the section is there but does nothing."""
+
+
+def carried(model: HarmonicDriveModel, section: str) -> bool:
+    """Whether the model carries the effect of `section` at work: present, and (for a section with
+    STRENGTHS) one of them nonzero. A section carried at zero is no effect yet: its screen makes it a
+    candidate like an absent one (a model file often lists load friction with f_cl = f_sl = b_l = 0).
+    The load friction counts as carried under any law but Coulomb-viscous, whose fields the candidate
+    sets."""
+    value = getattr(model, section)
+    if value is None:
+        return False
+    if section == "load_friction" and value.load_law != "coulomb_viscous":
+        return True
+    return any(getattr(value, name) for name in STRENGTHS.get(section, ())) or section not in STRENGTHS
+
+
 def direction(s: Signals, _: Residual) -> np.ndarray:
     """sgn ω_m while moving, 0 at rest in the data."""
     return np.where(s.stuck, 0.0, np.sign(s.omega_m))
@@ -231,7 +255,7 @@ def screen_viscous(ctx: Context) -> Candidate | None:
 
 
 def screen_stribeck(ctx: Context) -> Candidate | None:
-    if not ctx.karnopp or ctx.model.stribeck is not None:
+    if not ctx.karnopp or carried(ctx.model, "stribeck"):
         return None
     best: tuple[float, float, float, float] | None = None
     for omega_s in np.geomspace(0.1, 10.0, 15):
@@ -364,7 +388,7 @@ def screen_quadratic(ctx: Context) -> Candidate | None:
 
 
 def screen_direction(ctx: Context) -> Candidate | None:
-    if not ctx.karnopp or ctx.model.direction_asymmetry is not None:
+    if not ctx.karnopp or carried(ctx.model, "direction_asymmetry"):
         return None
     y = ctx.channels["motor"]
     score, beta, level = ctx.level_regression(lambda s, r: (~s.stuck).astype(float))
@@ -391,7 +415,7 @@ def screen_direction(ctx: Context) -> Candidate | None:
 
 
 def screen_load_dependent(ctx: Context) -> Candidate | None:
-    if not ctx.karnopp or ctx.model.load_dependent_friction is not None:
+    if not ctx.karnopp or carried(ctx.model, "load_dependent_friction"):
         return None
     score, beta, level = ctx.level_regression(lambda s, r: direction(s, r) * np.abs(r.torque_s))
     c_ts = -float(beta[0])
@@ -415,7 +439,7 @@ def screen_load_dependent(ctx: Context) -> Candidate | None:
 
 
 def screen_thermal(ctx: Context) -> Candidate | None:
-    if not ctx.karnopp or ctx.model.thermal_drift is not None:
+    if not ctx.karnopp or carried(ctx.model, "thermal_drift"):
         return None
     best: tuple[float, float, float, float] | None = None
     for tau in np.geomspace(ctx.duration_s / 30, 2 * ctx.duration_s, 12):
@@ -552,7 +576,7 @@ def screen_hysteresis(ctx: Context) -> Candidate | None:
 
 
 def screen_load_side(ctx: Context) -> Candidate | None:
-    if ctx.model.rigid or ctx.model.load_friction is not None or "load" not in ctx.channels:
+    if ctx.model.rigid or carried(ctx.model, "load_friction") or "load" not in ctx.channels:
         return None
     y = ctx.channels["load"]
 

@@ -25,8 +25,13 @@ accepted:
 
 Stribeck or static friction: both add friction near zero speed, and on closed-loop data a higher
 breakaway alone can shorten the same stick-slip. What tells them apart is the decay with speed: a static
-friction candidate is rejected when its fitted model still leaves friction decaying with |ω| while
-moving (Stribeck's signature explains `min_decay` or more of the motor residual beyond the level).
+friction candidate, alone or in a pair, is rejected when its fitted model still leaves friction decaying
+with |ω| while moving (Stribeck's signature explains `min_decay` or more of the motor residual beyond the
+level); and neither is tried without the other.
+
+Effects at zero: a section the model carries with its strengths at zero (`effects.carried`: load friction
+with f_cl = f_sl = b_l = 0, Stribeck with f_st = 0, ...) does nothing yet, so its effect is a candidate
+like an absent one.
 """
 
 from __future__ import annotations
@@ -249,7 +254,9 @@ def _tell_static_from_stribeck(trials: list[Trial], signals: list[Signals], opts
     """Reject an accepted static-friction trial whose model still leaves friction decaying with speed:
     that is Stribeck's, which a higher breakaway only imitates on closed-loop stick-slip."""
     for trial in trials:
-        if trial.accepted and trial.candidate.effect == "static_friction" and trial.partner is None:
+        # A pair is checked too: with another effect beside it (position-periodic friction, issue 25),
+        # static friction imitated Stribeck's share of a pair's shrink.
+        if trial.accepted and "static_friction" in trial.effects:
             decay = _leaves_decay(trial, signals, opts)
             if decay >= opts.min_decay:
                 trial.accepted = False
@@ -312,6 +319,15 @@ def _shortlist(candidates: list[Candidate], count: int) -> list[Candidate]:
         best = next(c for c in candidates if c.channel == channel)
         if best not in chosen:
             chosen.append(best)
+    # Stribeck and static friction both add friction near zero speed: one is tried only beside the other,
+    # so that the decay with speed (`_tell_static_from_stribeck`) decides between them, not the screen's
+    # ranking (with another effect in the residual, Stribeck's screen score fell out of the shortlist).
+    named = {c.effect for c in chosen}
+    for one, other in (("static_friction", "stribeck"), ("stribeck", "static_friction")):
+        partner = next((c for c in candidates if c.effect == other), None)
+        if one in named and other not in named and partner is not None:
+            chosen.append(partner)
+            named.add(other)
     return chosen
 
 
@@ -390,6 +406,7 @@ def find_gaps(
         if chosen is None:
             say(f"step {number + 1}: trying effects in pairs", base + 0.8 / opts.max_steps)
             pairs = _try_pairs(current, trials, shooting, gap_test, _prior(steps), opts)
+            _tell_static_from_stribeck(pairs, signals, opts)
             trials += pairs
             chosen = min((t for t in pairs if t.accepted), key=lambda t: t.held_out_after, default=None)
         if chosen is None:
