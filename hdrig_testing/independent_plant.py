@@ -14,7 +14,10 @@ Written from docs/MODEL.md's equations alone, with other numerics and another ri
 
 The truth is read from a model file's values (the schema is shared, the physics code is not): the
 article or Coulomb–viscous motor law, the `stribeck` and `kinematic_error` sections, Coulomb–viscous–
-static load friction, rigid or flexible. Anything else is refused rather than silently ignored.
+static load friction, rigid or flexible, and the `thermal` section: a winding and a gear temperature of
+its own (the two-node network stepped per control period by its exact exponential, friction power and
+i_a²·R as heat; motor friction × exp(−beta_T·(T_g − T_ref))), recorded as temp_gear and temp_motor with
+0.05 °C of noise. Anything else is refused rather than silently ignored.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ ENCODER_BITS = 14
 LOAD_ENCODER_BITS = 20
 LOAD_NOISE_RAD = 3e-6
 CURRENT_NOISE_A = 0.01
+TEMPERATURE_NOISE_C = 0.05
 SUPPORTED = {
     "mechanics",
     "motor",
@@ -41,6 +45,7 @@ SUPPORTED = {
     "load_friction",
     "kinematic_error",
     "stribeck",
+    "thermal",
     "numerics",
     "name",
     "description",
@@ -83,6 +88,29 @@ class _Truth:
         st = model.stribeck
         self.f_st, self.omega_st = (st.f_st, st.omega_st) if st is not None else (0.0, 1.0)
         self.rigid = self.K_s is None
+        self.thermal = model.thermal
+        # The gear's and the winding's temperatures [°C]: stepped once per control period by the rig.
+        th = self.thermal
+        self.T_g = th.gear_start_c if th is not None else 25.0
+        self.T_w = th.motor_start_c if th is not None else 25.0
+
+    def warmth(self) -> float:
+        """The grease's law: motor friction × exp(−beta_T·(T_g − T_ref)); 1 without a thermal section."""
+        th = self.thermal
+        return 1.0 if th is None else math.exp(-th.beta_T * (self.T_g - th.T_ref))
+
+    def heat(self, copper_w: float, friction_w: float, h: float) -> None:
+        """The two-node network over one period h, by its exact exponential for a held input (each node
+        relaxes to the equilibrium its neighbours and sources set): not the kernel's integrator."""
+        th = self.thermal
+        if th is None:
+            return
+        g_w = 1 / th.R_wg + 1 / th.R_wa
+        target_w = (copper_w + self.T_g / th.R_wg + th.T_amb / th.R_wa) / g_w
+        g_g = 1 / th.R_wg + 1 / th.R_ga
+        target_g = (friction_w + self.T_w / th.R_wg + th.T_amb / th.R_ga) / g_g
+        self.T_w = target_w + (self.T_w - target_w) * math.exp(-h * g_w / th.C_w)
+        self.T_g = target_g + (self.T_g - target_g) * math.exp(-h * g_g / th.C_g)
 
     def _levels(self, theta: float) -> tuple[float, float, float]:
         """(C(θ), P(θ)) for the article law; (F_c, 0) otherwise; and the law's static level at rest."""
@@ -109,10 +137,10 @@ class _Truth:
         else:
             level = c
         level = max(level, 0.0) + self.f_st * math.exp(-((omega / self.omega_st) ** 2))
-        return direction * level + self.b_m * omega
+        return (direction * level + self.b_m * omega) * self.warmth()
 
     def motor_static(self, theta: float) -> float:
-        return self._levels(theta)[2] + self.f_st
+        return (self._levels(theta)[2] + self.f_st) * self.warmth()
 
     def spring(self, th_m: float, w_m: float, th_l: float, w_l: float) -> float:
         err = self.A * math.sin(self.k * th_m + self.phi)
@@ -270,7 +298,10 @@ class IndependentRig:
         mode = [0.0, 0.0]
         q_m = self.encoder_step
         q_l = 2 * math.pi / 2**LOAD_ENCODER_BITS
-        cols = {c: np.empty(n) for c in ("t", "theta_m", "theta_l", "i_a", "cmd", "tau_ext")}
+        cols = {
+            c: np.empty(n)
+            for c in ("t", "theta_m", "theta_l", "i_a", "cmd", "tau_ext", "temp_gear", "temp_motor")
+        }
         integral, speed_est, last_count = 0.0, 0.0, 0.0
         alpha = h / (self.ctl.speed_filter_s + h)
         for i in range(n):
@@ -290,11 +321,21 @@ class IndependentRig:
             cols["i_a"][i] = i_a + self.rng.normal(0, CURRENT_NOISE_A)
             cols["cmd"][i] = command
             cols["tau_ext"][i] = tau_ext_nm[i]
+            if p.thermal is not None:  # (no draws otherwise: records without it stay as they were)
+                cols["temp_gear"][i] = p.T_g + self.rng.normal(0, TEMPERATURE_NOISE_C)
+                cols["temp_motor"][i] = p.T_w + self.rng.normal(0, TEMPERATURE_NOISE_C)
+                # the heat of this period, from the state at its start
+                f_m, f_l = self._friction(y, mode, self._psi(y, command, float(tau_ext_nm[i])))
+                w_l = p.r * y[1] if p.rigid else y[3]
+                p.heat(i_a * i_a * p.R, abs(f_m * y[1]) + (0.0 if p.rigid else abs(f_l * w_l)), h)
             y = self._period(y, mode, command, float(tau_ext_nm[i]), h)
         input_column = "i_cmd" if self.drive == "current" else "u"
         cols[input_column] = cols.pop("cmd")
         if not with_load:
             cols.pop("theta_l")
+        if p.thermal is None:
+            cols.pop("temp_gear")
+            cols.pop("temp_motor")
         return Run(cols, {"source": "hdrig_testing.independent_plant", "input_column": input_column})
 
 
