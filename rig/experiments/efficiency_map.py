@@ -95,6 +95,7 @@ class EfficiencyMap(Experiment):
         require_columns(NAME, run, ("tau_in", "tau_out"))
         settle = ctx.cycles(params.settle_s)
         rate = ctx.rate_hz
+        notes_: list[str] = []
         rows: dict[str, list[float]] = {
             k: [] for k in ("speed_rad_s", "load_nm", "p_in_w", "p_out_w", "eta", "eta_sigma")
         }
@@ -103,6 +104,19 @@ class EfficiencyMap(Experiment):
                 rows_ = segment_rows(run, point_label(i, j))
                 w = slice(rows_.start + settle, rows_.stop)
                 tin, tout, tm, tl = (run[c][w] for c in ("tau_in", "tau_out", "theta_m", "theta_l"))
+                held = (tm[-1] - tm[0]) / (tm.shape[0] - 1) * rate
+                if not held > 0.5 * speed:
+                    # The input could not carry this load at this speed (its current saturated): no power
+                    # flows through, so no efficiency; said, and the rest of the map kept.
+                    notes_.append(
+                        f"{speed:g} rad/s with {load:g} N·m: the input held {held:.3g} rad/s, not its speed"
+                        " (current saturated?): η not measured"
+                    )
+                    for key, value in (("speed_rad_s", speed), ("load_nm", load)):
+                        rows[key].append(value)
+                    for key in ("p_in_w", "p_out_w", "eta", "eta_sigma"):
+                        rows[key].append(float("nan"))
+                    continue
                 p_in, p_out, eta = efficiency_window(tin, tout, tm, tl)
                 parts = [
                     efficiency_window(a, b, c, d)[2]
@@ -117,17 +131,20 @@ class EfficiencyMap(Experiment):
                 rows["eta"].append(eta)
                 rows["eta_sigma"].append(float(np.std(parts, ddof=1) / np.sqrt(params.blocks)))
         table = {k: np.asarray(v) for k, v in rows.items()}
-        best = int(np.argmax(table["eta"]))
+        if np.all(np.isnan(table["eta"])):
+            return Results(tables={"efficiency_map": table}, notes=notes_)
+        best = int(np.nanargmax(table["eta"]))
         metrics: dict[str, float | int | str] = {
             "efficiency_max": float(table["eta"][best]),
             "efficiency_max_sigma": float(table["eta_sigma"][best]),
             "efficiency_max_speed_rad_s": float(table["speed_rad_s"][best]),
             "efficiency_max_load_nm": float(table["load_nm"][best]),
-            "efficiency_min": float(np.min(table["eta"])),
+            "efficiency_min": float(np.nanmin(table["eta"])),
         }
         notes = [
+            *notes_,
             f"η {table['eta'][best]:.3f} ± {table['eta_sigma'][best]:.3f} at best"
-            f" ({table['speed_rad_s'][best]:g} rad/s input, {table['load_nm'][best]:g} N·m output)"
+            f" ({table['speed_rad_s'][best]:g} rad/s input, {table['load_nm'][best]:g} N·m output)",
         ]
         return Results(metrics=metrics, tables={"efficiency_map": table}, notes=notes)
 
