@@ -37,9 +37,14 @@ def bus_settings_for_test(name: str) -> BusSettings:
 
 def held_speed_errors(run: Any, speeds: set[float], abs_tol_rad_s: float) -> list[str]:
     """The constant-speed segments of a recorded speed sweep whose second half's mean motor speed is not
-    within `abs_tol_rad_s` of its set-point (or whose set-point is not one of `speeds`), one line each."""
+    within `abs_tol_rad_s` of its set-point (or whose set-point is not one of `speeds`), one line each.
+    Those are the segments labelled `v+<speed>`/`v-<speed>` (speed_sweep's passes); the ramps and
+    moves between them are not held speeds."""
     errors = []
-    for segment in run.meta["segments"]:
+    held_segments = [s for s in run.meta["segments"] if s["label"].startswith(("v+", "v-"))]
+    if not held_segments:
+        return ["no held-speed segment (v+<speed>, v-<speed>) in the run"]
+    for segment in held_segments:
         held = slice(segment["start"] + segment["cycles"] // 2, segment["start"] + segment["cycles"])
         speed = float(np.mean(run["setpoint"][held]))
         measured = float(np.mean(run["omega_m"][held]))
