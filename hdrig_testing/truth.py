@@ -302,13 +302,7 @@ _add(
         abs_tol=2 * 2 * math.pi / 131072,
         reason="the same windows on the true θ_m: the encoder's rounding",
     ),
-    Check(
-        "coverage_min",
-        _same_analysis,
-        abs_tol=2 * 2 * math.pi / 131072 / (2 * math.pi),
-        reason="the share of its whole turns a window covers, on the true θ_m: the encoder's rounding at"
-        " both ends",
-    ),
+    Check(r"turns_(min|max)", _same_analysis, reason="whole turns of the true θ_m: exact"),
     Check(
         "windows_load_unsteady",
         _same_analysis,
@@ -320,12 +314,14 @@ _add(
         _sweep_law,
         rel_tol=0.02,
         reason="plant law at the sweep's centre (one turn about it): issue 30's 2 %",
+        open_issue="issue 30: each speed is averaged at another place of the stroke (H4)",
     ),
     Check(
         r"viscous_(pos|neg)_nm_s_rad",
         _sweep_law,
         rel_tol=0.10,
         reason="plant law at the sweep's centre: issue 30's 10 % (C·k_v + b_m + r²·b_l on the seed)",
+        open_issue="issue 30: each speed is averaged at another place of the stroke (H4)",
     ),
 )
 
@@ -633,20 +629,13 @@ _add(
 
 def _lv_levels(tr: TruthRun) -> tuple[np.ndarray, np.ndarray]:
     """(τ_ext, mean over the sweep's windows of the plant's steady |friction| at the sweep's centre) per
-    load; the law includes friction that grows with the transmitted torque (c_Ts·|T_s|, true T_s). The
-    windows the level averages: those the analysis marks load-steady (checked apart, as the speed
-    sweep's `windows_load_unsteady`)."""
+    load; the law includes friction that grows with the transmitted torque (c_Ts·|T_s|, true T_s)."""
     from rig.experiments.load_variation import load_prefix
-    from rig.experiments.speed_sweep import sweep_centre
 
-    table = tr.results.tables["friction_vs_velocity_by_load"]
     levels = []
     for tau in tr.params.loads_nm:
-        mine = table["tau_ext_nm"] == tau
-        steady = set(table["omega_set"][mine & (table["load_steady"] > 0.5)].tolist())
-        windows = [w for w in _windows(tr, load_prefix(tau), tr.params.settle_s) if w[0] in steady]
-        centre = sweep_centre(tr.params.sweep(tau), tr.ctx)
-        _, friction = _law_friction_vs_speed(tr, windows, centre)
+        windows = _windows(tr, load_prefix(tau), tr.params.settle_s)
+        _, friction = _law_friction_vs_speed(tr, windows, _centre(tr, windows))
         levels.append(float(np.mean(np.abs(friction))))
     return np.asarray(tr.params.loads_nm, dtype=float), np.asarray(levels)
 
@@ -670,6 +659,9 @@ _add(
         _lv_metric,
         rel_tol=0.02,
         reason="plant law at the sweep's centre (as the speed sweep's Coulomb level, issue 30: 2 %)",
+        open_issue="issue 30 item 2: each speed is averaged at another place of the stroke (+2.5 %); H4's"
+        " same-place sweep (WIP 5b73f47, not on main) left the windows where the load sticks in the level"
+        " (−2 %)",
     ),
     Check(
         "friction_per_load_nm_per_nm",

@@ -17,12 +17,6 @@ loop's transient), then `periods` whole periods are analyzed. Why so:
   f^(−1/2) and constant acceleration's f^(−1): more excitation where the current it asks
   (~2π·f·J·amplitude) is small against friction, less at the load resonance, where the position loop
   drives an almost undamped load (on the seed the current asked stays under the drive's limit);
-- the excitation's peak is most of the mean speed (22 of 25 rad/s by default): the output's Coulomb
-  friction still reverses where the load swings at its barely damped mode (its swing there exceeds its
-  mean speed), and those reversals put a distortion on the lines next to the mode that averaging cannot
-  remove (it is periodic with the excitation). Its share of the response falls as the excitation grows
-  (a reversing Coulomb friction acts as a gain that falls with the amplitude), so the excitation is as
-  large as the motor's never reversing allows (figures: docs/BENCHMARKS.md, "Issue 30 and 31's rest");
 - the position-dependent friction is a torque that follows θ_m, which follows the reference: over
   periods that each span the same motor turns it would repeat with the excitation and bias every line
   in a way coherence cannot show (by several dB at low frequencies on the seed). So the mean speed is
@@ -112,7 +106,7 @@ class ChirpParams(ExperimentParams):
         description="motor speed the sweep rides on, so friction keeps its sign [rad/s]",
     )
     speed_amp_motor_rad_s: float = Field(
-        default=22.0,
+        default=15.0,
         gt=0,
         validate_default=True,
         le=300,
