@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -48,7 +49,18 @@ PROGRAMS: dict[str, dict[str, Any]] = {
         "duty_stroke_rad": 20.0,
     },
 }
-NAMES = sorted(EXPERIMENTS)
+# Experiments that need another bench than `sim` (a load drive and transducers, or a thermal model):
+# their metrics are checked against the plant's truth in their own test modules for now; bringing them
+# into this harness (a truth run on sim-catalog / seed-thermal) is issue 31's open rest.
+CHECKED_ELSEWHERE: dict[str, str] = {
+    "efficiency-map": "test_catalog_experiments.py",
+    "no-load-torque": "test_catalog_experiments.py",
+    "starting-torque": "test_catalog_experiments.py",
+    "torsional-stiffness": "test_catalog_experiments.py",
+    "transmission-accuracy": "test_catalog_experiments.py",
+    "warm-up": "test_warm_up.py",
+}
+NAMES = sorted(PROGRAMS)
 
 
 @pytest.fixture(scope="module")
@@ -65,8 +77,13 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, T.TruthRun]:
 
 
 def test_every_experiment_is_in_the_harness() -> None:
-    assert set(PROGRAMS) == set(EXPERIMENTS), "an experiment without a harness program"
-    assert set(T.CHECKS) == set(EXPERIMENTS), "an experiment without registered checks"
+    assert not set(PROGRAMS) & set(CHECKED_ELSEWHERE), "an experiment both in the harness and excused from it"
+    assert set(PROGRAMS) | set(CHECKED_ELSEWHERE) == set(EXPERIMENTS), "an experiment with no harness"
+    assert set(T.CHECKS) == set(PROGRAMS), "an experiment without registered checks"
+    here = Path(__file__).parent
+    for name, module in CHECKED_ELSEWHERE.items():
+        text = (here / module).read_text()
+        assert name.replace("-", "_") in text or name in text, f"{module} does not test {name}"
 
 
 @pytest.mark.parametrize("name", NAMES)
