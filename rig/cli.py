@@ -753,7 +753,21 @@ def build_parser() -> argparse.ArgumentParser:
         "--key", metavar="KEY", help=f"the API key for --server (default: ${KEY_VARIABLE}; hdrig keys create)"
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_model(sub)
+    _add_simulate(sub)
+    _add_run(sub)
+    _add_runs(sub)
+    _add_trend(sub)
+    _add_fit(sub)
+    _add_gaps(sub)
+    _add_keys(sub)
+    _add_serve(sub)
+    _add_twin(sub)
+    return parser
 
+
+def _add_model(sub: Subcommands) -> None:
+    """`model list` and `model show`."""
     model = _group(sub, "model", "list and show model presets and files")
     _command(model, "list", cmd_model_list, "list the presets in configs/models", json=JSON_HELP)
     show = _command(
@@ -765,6 +779,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     show.add_argument("model", metavar="NAME_OR_FILE", help="preset name (seed) or YAML/JSON model file")
 
+
+def _add_simulate(sub: Subcommands) -> None:
+    """`simulate`: a model under an input profile, or a replay."""
     kinds = "; ".join(f"{name}: {kind.help}" for name, kind in KINDS.items())
     sim = sub.add_parser(
         "simulate",
@@ -791,6 +808,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", required=True, metavar="FILE", help="run file to write (.parquet, .csv, .mat)")
     sim.set_defaults(handler=cmd_simulate)
 
+
+def _add_run(sub: Subcommands) -> None:
+    """`run`: an experiment or the campaign on a rig."""
     names = EXPERIMENT_NAMES
     run = sub.add_parser(
         "run",
@@ -829,6 +849,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.set_defaults(handler=cmd_run)
 
+
+def _add_runs(sub: Subcommands) -> None:
+    """`runs list|show|analyze|export`: the run catalog."""
     runs = _group(sub, "runs", "the run catalog: list, show, analyze and export runs")
     listed = "the newest runs (a page; --all: every one): id, experiment, status, started, samples"
     searched = _command(runs, "list", cmd_runs_list, listed, json="the runs listed, as a JSON list")
@@ -860,6 +883,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", required=True, metavar="PATH", help="file to write, or a folder to write <RUN>.<format> in"
     )
 
+
+def _add_trend(sub: Subcommands) -> None:
+    """`trend`: endurance checkpoints against time."""
     trend = _command(
         sub,
         "trend",
@@ -879,6 +905,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="model file or preset whose thermal law brings each checkpoint's F_c to its T_ref (normalized)",
     )
 
+
+def _add_fit(sub: Subcommands) -> None:
+    """`fit`: identification."""
     fit = _command(
         sub,
         "fit",
@@ -907,6 +936,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("--workers", type=int, metavar="N", help="--batch: the local cluster's worker processes")
 
+
+def _add_gaps(sub: Subcommands) -> None:
+    """`gaps`: the model-gap workflow."""
     gaps = _command(
         sub,
         "gaps",
@@ -927,6 +959,9 @@ def build_parser() -> argparse.ArgumentParser:
         " $HDRIG_HOME/analyses/<id>/)",
     )
 
+
+def _add_keys(sub: Subcommands) -> None:
+    """`keys create|list|revoke`."""
     keys = _group(sub, "keys", "API keys of the service: create, list, revoke")
     created = _command(keys, "create", cmd_keys_create, "make a key; prints only the key (shown this once)")
     created.add_argument("--role", required=True, choices=["viewer", "operator", "admin"])
@@ -934,6 +969,9 @@ def build_parser() -> argparse.ArgumentParser:
     _command(keys, "list", cmd_keys_list, "every key: name, role, created, revoked", json=JSON_HELP)
     _command(keys, "revoke", cmd_keys_revoke, "revoke a key by name").add_argument("name", metavar="NAME")
 
+
+def _add_serve(sub: Subcommands) -> None:
+    """`serve`: the REST service and page."""
     serve = _command(
         sub,
         "serve",
@@ -948,6 +986,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     serve.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
 
+
+def _add_twin(sub: Subcommands) -> None:
+    """`twin`: a virtual-can rig's twins standalone."""
     twin = _command(
         sub,
         "twin",
@@ -959,7 +1000,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _rig_argument(twin)
     twin.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (default 0: any free)")
-    return parser
 
 
 def _load_arg(text: str) -> str | float:
