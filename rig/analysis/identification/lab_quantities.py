@@ -65,9 +65,12 @@ def _directed(magnitude: Callable[[Values], float], sign: float) -> Callable[[Va
     return lambda v: magnitude(v) + sign * v["f_dir"]
 
 
-def _definitions(model: HarmonicDriveModel) -> list[_Definition]:
+Law = tuple[Callable[[Values], float], str]
+
+
+def _motor_laws(model: HarmonicDriveModel) -> tuple[Law, Law, Law]:
+    """The motor law's (level at rest, viscous slope, static level), each with its formula's text."""
     law = model.motor_friction.motor_law
-    out: list[_Definition] = []
     if law == "article":
         level, level_text = _article_level, "s3·(1 − k_v·v_c) + a0/2"
         slope, slope_text = (lambda v: v["s3"] * v["k_v"] + v["b_m"]), "s3·k_v + b_m"
@@ -82,6 +85,13 @@ def _definitions(model: HarmonicDriveModel) -> list[_Definition]:
             static, static_text = level, "f_cm (Dahl: no stiction)"
         else:
             static, static_text = (lambda v: v["f_sm"]), "f_sm"
+    return (level, level_text), (slope, slope_text), (static, static_text)
+
+
+def _motor_definitions(model: HarmonicDriveModel, laws: tuple[Law, Law, Law]) -> list[_Definition]:
+    """The motor side's Coulomb at rest, viscous slope and breakaway, per direction."""
+    (level, level_text), (slope, slope_text), (static, static_text) = laws
+    out: list[_Definition] = []
     stribeck = model.stribeck is not None
     for sign, direction in ((1.0, "forward"), (-1.0, "backward")):
         dir_text = (" + f_dir" if sign > 0 else " − f_dir") if model.direction_asymmetry is not None else ""
@@ -111,6 +121,13 @@ def _definitions(model: HarmonicDriveModel) -> list[_Definition]:
                 _directed(lambda v: static(v) + v["f_st"], sign),
             )
         )
+    return out
+
+
+def _output_definitions(model: HarmonicDriveModel, laws: tuple[Law, Law, Law]) -> list[_Definition]:
+    """The load side's friction, both sides seen at the output, the inertias and the stiffness."""
+    (level, _), (slope, _), _ = laws
+    out: list[_Definition] = []
     if model.load_friction is not None:
         out += [
             _Definition("load_coulomb_Nm", "N·m", "output side: Coulomb level f_cl", lambda v: v["f_cl"]),
@@ -161,6 +178,11 @@ def _definitions(model: HarmonicDriveModel) -> list[_Definition]:
             )
         )
     return out
+
+
+def _definitions(model: HarmonicDriveModel) -> list[_Definition]:
+    laws = _motor_laws(model)
+    return _motor_definitions(model, laws) + _output_definitions(model, laws)
 
 
 def model_values(model: HarmonicDriveModel) -> dict[str, float]:
