@@ -368,6 +368,89 @@ def residuals_of(model: HarmonicDriveModel, signals: list[Signals], dt_s: float)
     return [one_step_residual(model, s, dt_s) for s in signals]
 
 
+def _choose_step(
+    current: HarmonicDriveModel,
+    signals: list[Signals],
+    shooting: Shooting,
+    gap_test: float,
+    steps: list[GapStep],
+    opts: GapOptions,
+    say: Progress,
+    number: int,
+) -> tuple[Trial | None, list[Trial]]:
+    """One step's screen and trials: the effect (or pair) accepted, if any, and every trial made."""
+    base = number / opts.max_steps
+    say(f"step {number + 1}: screening the residual", base)
+    ctx = Context(current, signals, residuals_of(current, signals, opts.dt_s))
+    shortlist = _shortlist(screen(ctx, skip={s.effect for s in steps}), opts.confirm)
+    trials = _try(current, shortlist, shooting, gap_test, _prior(steps), opts, say, number, base)
+    _tell_static_from_stribeck(trials, signals, opts)
+    chosen = _choose(trials, current, gap_test, opts)
+    if chosen is None:
+        say(f"step {number + 1}: trying effects in pairs", base + 0.8 / opts.max_steps)
+        pairs = _try_pairs(current, trials, shooting, gap_test, _prior(steps), opts)
+        _tell_static_from_stribeck(pairs, signals, opts)
+        trials += pairs
+        chosen = min((t for t in pairs if t.accepted), key=lambda t: t.held_out_after, default=None)
+    return chosen, trials
+
+
+def _steps_of(
+    chosen: Trial,
+    current: HarmonicDriveModel,
+    shooting: Shooting,
+    gap_all: float,
+    gap_test: float,
+    trials: list[Trial],
+) -> list[GapStep]:
+    """The accepted trial as steps, one per effect (a pair gives two), each after the one before."""
+    steps = []
+    for member in _members(chosen, current, shooting):
+        after_all = shooting.gap(member.model, shooting.everything)
+        after_test = shooting.gap(member.model, shooting.test) if chosen.partner else chosen.held_out_after
+        steps.append(
+            GapStep(
+                effect=member.candidate.effect,
+                gap_before=gap_all,
+                gap_after=after_all,
+                held_out_before=gap_test,
+                held_out_after=after_test,
+                evidence=member.evidence,
+                parameters=member.parameters,
+                estimates=[p for p in chosen.fit.parameters if p.name in member.parameters],
+                model_before=current,
+                model_after=member.model,
+                trials=trials,
+            )
+        )
+        current, gap_all, gap_test = member.model, after_all, after_test
+    return steps
+
+
+def _verdict(
+    steps: list[GapStep], initial: float, gap_all: float, rejected: list[str], left: Signature | None
+) -> str:
+    """The workflow's one-line answer: what was added, or why nothing was."""
+    if steps:
+        added = ", ".join(s.effect for s in steps)
+        shrink = initial / max(gap_all, 1e-300)
+        return f"added {added}: gap {initial:.3g} → {gap_all:.3g} rad ({shrink:.1f}× smaller)"
+    tried = (
+        "; tried " + "; ".join(rejected)
+        if rejected
+        else "; no effect's signature explains any of the residual"
+    )
+    where = f"; largest residual signature: {left.line()}" if left is not None else ""
+    if left is not None and left.share >= SYSTEMATIC:
+        return (
+            f"nothing named, but the gap is systematic (gap {gap_all:.3g} rad): no effect of the"
+            f" vocabulary explains it{where}{tried}"
+        )
+    return (
+        f"the model explains the data: nothing significant is missing (gap {gap_all:.3g} rad{where}{tried})"
+    )
+
+
 def find_gaps(
     runs: list[Run],
     model: HarmonicDriveModel,
@@ -396,72 +479,24 @@ def find_gaps(
     steps: list[GapStep] = []
     trials: list[Trial] = []
     for number in range(opts.max_steps):
-        base = number / opts.max_steps
-        say(f"step {number + 1}: screening the residual", base)
-        ctx = Context(current, signals, residuals_of(current, signals, opts.dt_s))
-        shortlist = _shortlist(screen(ctx, skip={s.effect for s in steps}), opts.confirm)
-        trials = _try(current, shortlist, shooting, gap_test, _prior(steps), opts, say, number, base)
-        _tell_static_from_stribeck(trials, signals, opts)
-        chosen = _choose(trials, current, gap_test, opts)
-        if chosen is None:
-            say(f"step {number + 1}: trying effects in pairs", base + 0.8 / opts.max_steps)
-            pairs = _try_pairs(current, trials, shooting, gap_test, _prior(steps), opts)
-            _tell_static_from_stribeck(pairs, signals, opts)
-            trials += pairs
-            chosen = min((t for t in pairs if t.accepted), key=lambda t: t.held_out_after, default=None)
+        chosen, trials = _choose_step(current, signals, shooting, gap_test, steps, opts, say, number)
         if chosen is None:
             break
-        for member in _members(chosen, current, shooting):
-            after_all = shooting.gap(member.model, shooting.everything)
-            after_test = (
-                shooting.gap(member.model, shooting.test) if chosen.partner else chosen.held_out_after
-            )
-            steps.append(
-                GapStep(
-                    effect=member.candidate.effect,
-                    gap_before=gap_all,
-                    gap_after=after_all,
-                    held_out_before=gap_test,
-                    held_out_after=after_test,
-                    evidence=member.evidence,
-                    parameters=member.parameters,
-                    estimates=[p for p in chosen.fit.parameters if p.name in member.parameters],
-                    model_before=current,
-                    model_after=member.model,
-                    trials=trials,
-                )
-            )
-            current, gap_all, gap_test = member.model, after_all, after_test
+        taken = _steps_of(chosen, current, shooting, gap_all, gap_test, trials)
+        steps += taken
+        current, gap_all, gap_test = taken[-1].model_after, taken[-1].gap_after, taken[-1].held_out_after
         trials = []
 
     final_ctx = Context(current, signals, residuals_of(current, signals, opts.dt_s))
     left = signature(final_ctx)
     rejected = [t.line(gap_test) for t in trials]
+    verdict = _verdict(steps, initial, gap_all, rejected, left)
     if steps:
         added = ", ".join(s.effect for s in steps)
-        shrink = initial / max(gap_all, 1e-300)
-        verdict = f"added {added}: gap {initial:.3g} → {gap_all:.3g} rad ({shrink:.1f}× smaller)"
         current = current.with_updates(
             name=f"{model.name}+gaps",
             description=f"{model.description} Effects added by `hdrig gaps`: {added}.".strip(),
         )
-    else:
-        tried = (
-            "; tried " + "; ".join(rejected)
-            if rejected
-            else "; no effect's signature explains any of the residual"
-        )
-        where = f"; largest residual signature: {left.line()}" if left is not None else ""
-        if left is not None and left.share >= SYSTEMATIC:
-            verdict = (
-                f"nothing named, but the gap is systematic (gap {gap_all:.3g} rad): no effect of the"
-                f" vocabulary explains it{where}{tried}"
-            )
-        else:
-            verdict = (
-                "the model explains the data: nothing significant is missing"
-                f" (gap {gap_all:.3g} rad{where}{tried})"
-            )
     out = (
         Path(model_out)
         if model_out is not None
