@@ -26,6 +26,16 @@ class ProgramError(UserInputError):
     """The parameters are valid but do not fit this rig (its stroke, its limits); says which and why."""
 
 
+def check_stroke(experiment: str, reach_rad: float, ctx: RigContext) -> None:
+    """Refuse a program whose motor stroke `reach_rad` from the start passes the rig's upper travel limit."""
+    top = ctx.config.limits.travel_max_out_rad / ctx.gear_ratio
+    if ctx.theta_m0 + reach_rad > top:
+        raise ProgramError(
+            f"{experiment}: a stroke of {reach_rad:g} rad from θ_m = {ctx.theta_m0:.3g} rad passes the travel"
+            f" limit ({top:.4g} rad at the motor)"
+        )
+
+
 LIST_MAX = 200
 """Most values in one list parameter (speeds, loads): a sweep of 200 speeds both ways is hours already."""
 SPEED_MAX_RAD_S = 2000.0

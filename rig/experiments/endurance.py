@@ -37,10 +37,10 @@ from rig.experiments.base import (
     SPEED_MAX_RAD_S,
     Experiment,
     ExperimentParams,
-    ProgramError,
     Results,
     RigContext,
     SegmentReader,
+    check_stroke,
     distinct_speeds,
     segments_of,
     within_rig_speed,
@@ -381,13 +381,8 @@ class Endurance(Experiment):
     needs = frozenset({ControlMode.VELOCITY, ControlMode.POSITION})
 
     def program(self, params: EnduranceParams, ctx: RigContext) -> list[Segment]:
-        top = ctx.config.limits.travel_max_out_rad / ctx.gear_ratio
         reach = max(params.duty_stroke_rad, params.pass_stroke_rad)
-        if ctx.theta_m0 + reach > top:
-            raise ProgramError(
-                f"endurance: a stroke of {reach:g} rad from θ_m = {ctx.theta_m0:.3g} rad passes the travel"
-                f" limit ({top:.4g} rad at the motor)"
-            )
+        check_stroke("endurance", reach, ctx)
         count = checkpoints_due(params)
         total_min = params.duration_h * 60.0
         first = checkpoint_program(params, ctx, 0)

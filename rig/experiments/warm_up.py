@@ -38,9 +38,9 @@ from rig.experiments.base import (
     SPEED_MAX_RAD_S,
     Experiment,
     ExperimentParams,
-    ProgramError,
     Results,
     RigContext,
+    check_stroke,
     distinct_speeds,
     segments_of,
     within_rig_speed,
@@ -219,13 +219,8 @@ class WarmUp(Experiment):
     needs = frozenset({ControlMode.VELOCITY, ControlMode.POSITION})
 
     def program(self, params: WarmUpParams, ctx: RigContext) -> list[Segment]:
-        top = ctx.config.limits.travel_max_out_rad / ctx.gear_ratio
         reach = max(params.duty_stroke_rad, max(params.speeds_rad_s) * (params.settle_s + params.hold_s))
-        if ctx.theta_m0 + reach > top:
-            raise ProgramError(
-                f"warm-up: a stroke of {reach:g} rad from θ_m = {ctx.theta_m0:.3g} rad passes the travel"
-                f" limit ({top:.4g} rad at the motor)"
-            )
+        check_stroke("warm-up", reach, ctx)
         program = checkpoint_program(params, ctx, 0)
         index = 1
         for block, seconds in enumerate(_blocks(params.warm_s, params.checkpoint_every_s)):
