@@ -67,6 +67,13 @@ def distinct_speeds(speeds: list[float], at_least: int = 1) -> list[float]:
     return sorted(speeds)
 
 
+def rig_speeds(speeds: list[float], info: ValidationInfo, at_least: int = 1) -> list[float]:
+    """`distinct_speeds`, each within the rig's speed saturation: a list validator."""
+    for speed in speeds:
+        within_rig_speed(speed, info)
+    return distinct_speeds(speeds, at_least)
+
+
 def within_rig_speed(speed_rad_s: float, info: ValidationInfo, what: str = "speed") -> float:
     """Refuse a motor speed beyond the velocity saturation of the rig the plan is made for (if any)."""
     config = (info.context or {}).get(RIG_CONTEXT)

@@ -41,7 +41,7 @@ from rig.experiments.base import (
     RigContext,
     SegmentReader,
     check_stroke,
-    distinct_speeds,
+    rig_speeds,
     segments_of,
     within_rig_speed,
 )
@@ -108,9 +108,7 @@ class EnduranceParams(ExperimentParams):
     @field_validator("speeds_rad_s")
     @classmethod
     def _positive(cls, speeds: list[float], info: ValidationInfo) -> list[float]:
-        for speed in speeds:
-            within_rig_speed(speed, info)
-        return distinct_speeds(speeds, at_least=2)  # a level and a slope
+        return rig_speeds(speeds, info, at_least=2)  # a level and a slope
 
     @field_validator("pass_speed_rad_s")
     @classmethod

@@ -23,9 +23,8 @@ from rig.experiments.base import (
     ProgramError,
     Results,
     RigContext,
-    distinct_speeds,
+    rig_speeds,
     segments_of,
-    within_rig_speed,
 )
 from rig.experiments.plots import new_figure, save_figure
 from rig.interface import ControlMode, Segment
@@ -60,9 +59,7 @@ class SpeedSweepParams(ExperimentParams):
     @field_validator("speeds_rad_s")
     @classmethod
     def _positive_speeds(cls, speeds: list[float], info: ValidationInfo) -> list[float]:
-        for speed in speeds:
-            within_rig_speed(speed, info)
-        return distinct_speeds(speeds)
+        return rig_speeds(speeds, info)
 
 
 def sweep_program(params: SpeedSweepParams, ctx: RigContext, prefix: str = "") -> list[Segment]:

@@ -41,9 +41,8 @@ from rig.experiments.base import (
     Results,
     RigContext,
     check_stroke,
-    distinct_speeds,
+    rig_speeds,
     segments_of,
-    within_rig_speed,
 )
 from rig.experiments.plots import new_figure, save_figure
 from rig.interface import ControlMode, Segment
@@ -88,9 +87,7 @@ class WarmUpParams(ExperimentParams):
     @field_validator("speeds_rad_s")
     @classmethod
     def _speeds(cls, speeds: list[float], info: ValidationInfo) -> list[float]:
-        for speed in speeds:
-            within_rig_speed(speed, info)
-        return distinct_speeds(speeds)
+        return rig_speeds(speeds, info)
 
 
 def _label(index: int, name: str) -> str:
