@@ -463,10 +463,10 @@ class Cia402Twin:
                         self._apply_rpdo(self._rpdos[cob_id], payload)
                 finally:
                     self._applying_sync_rpdos = False
-            self._sync_count += 1
             for follower in self.followers:
                 follower.before_step()
             self._step(self._cycles_per_sync())
+            self._sync_count += 1  # after the step: a SYNC counted is one whose plant time has passed
             self.measured.record(taken_s, self._truths())
             if self.on_sample is not None:
                 self.on_sample(self.last_sample)
