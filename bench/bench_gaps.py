@@ -23,6 +23,13 @@ Prints tables, asserts nothing. What it measures:
    residual RMS by 1.25× (the workflow's own threshold); its shrinkage is that held-out residual ratio.
    Skipped, with a message, when pysindy is not installed.
 4. Time per case on `--timing-duration` s (default 60 s) of 1 kHz data, target < 60 s.
+5. Slow friction factors (issue 27 item 5, `--generators slow`): the independent generator's thermal
+   state, three records per case at several temperatures and travels (`hidden_effects.slow_case`):
+   friction that follows only the gear temperature (the model without a thermal law), the two nulls
+   (temperatures recorded, friction ignoring them; the model carrying the truth's law), wear with travel
+   and drift with time. Per case: what is named, the gap before/after, the fitted strength against the
+   truth's, the time. A hit is exactly the hidden slow effect among the slow factors named
+   (temperature_dependence, thermal_drift, wear_drift); a false alarm is anything named on a null.
 """
 
 from __future__ import annotations
@@ -39,7 +46,18 @@ from typing import Any
 
 import numpy as np
 
-from hdrig_testing.hidden_effects import HIDDEN, Case, carried_at_zero_case, hidden_case, record_probe
+from hdrig_testing.hidden_effects import (
+    BETA_T,
+    HIDDEN,
+    K_WEAR,
+    SLOW_CASES,
+    THERMAL_DRIFT,
+    Case,
+    carried_at_zero_case,
+    hidden_case,
+    record_probe,
+    slow_case,
+)
 from hdrig_testing.independent_plant import IndependentRig, lab_profile
 from model.run import Run
 from rig.analysis.gaps import find_gaps
@@ -428,6 +446,62 @@ def _per_effect(rows: list[Row], have_sindy: bool) -> None:
             )
 
 
+SLOW = ("temperature_dependence", "thermal_drift", "wear_drift")
+
+
+def _slow_strength(result: GapsResult, effect: str) -> tuple[float | None, str]:
+    """The fitted strength of a slow effect and its parameter's name (None: not in the final model)."""
+    m = result.model
+    if effect == "temperature_dependence":
+        return (m.thermal.beta_T if m.thermal is not None else None), "beta_T"
+    if effect == "wear_drift":
+        return (m.wear_drift.k_wear if m.wear_drift is not None else None), "k_wear"
+    return (m.thermal_drift.d_th if m.thermal_drift is not None else None), "d_th"
+
+
+def slow_suite(strengths: list[float], seeds: list[int], duration_s: float) -> None:
+    """Section 5: each slow case at each strength and seed (nulls at strength 1 only: the carried null's
+    law at the others too), a line per case and the totals."""
+    truth = {"temperature_dependence": BETA_T, "wear_drift": K_WEAR, "thermal_drift": THERMAL_DRIFT["d_th"]}
+    print(f"\n## Slow friction factors: 3 records × {duration_s:g} s per case, independent generator\n")
+    print("| case | strength | seed | hidden | named | gap before → after [rad] | fitted / truth | time |")
+    print("|---|---|---|---|---|---|---|---|")
+    hits = cases = alarms = nulls = 0
+    errors: list[float] = []
+    for name in SLOW_CASES:
+        for strength in strengths if name not in ("temperature_flat",) else [1.0]:
+            for seed in seeds:
+                case = slow_case(name, duration_s, strength, seed)
+                start = time.perf_counter()
+                result = find_gaps(case.runs, case.model)
+                seconds = time.perf_counter() - start
+                named = [step.effect for step in result.steps]
+                ratio = "—"
+                if case.hidden:
+                    (effect,) = case.hidden
+                    cases += 1
+                    hit = [e for e in named if e in SLOW] == [effect]
+                    hits += hit
+                    value, parameter = _slow_strength(result, effect)
+                    if hit and value is not None:
+                        ratio = f"{parameter} {value / (strength * truth[effect]):.3f}"
+                        errors.append(abs(value / (strength * truth[effect]) - 1))
+                else:
+                    nulls += 1
+                    alarms += bool(named)
+                print(
+                    f"| {name} | {strength:g} | {seed} | {', '.join(case.hidden) or 'null'} |"
+                    f" {', '.join(named) or '-'} | {result.initial_gap:.3g} → {result.final_gap:.3g} |"
+                    f" {ratio} | {seconds:.1f} s |",
+                    flush=True,
+                )
+    worst = f"{100 * max(errors):.1f} %" if errors else "—"
+    print(
+        f"\nslow factors: hits {hits}/{cases}, false alarms on nulls {alarms}/{nulls},"
+        f" worst strength error of the hits {worst}"
+    )
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=16.0, help="probe length per suite case [s]")
@@ -437,8 +511,14 @@ def main() -> int:
     parser.add_argument("--independent-strengths", type=float, nargs="+", default=[0.5, 1.0])
     parser.add_argument("--independent-seeds", type=int, nargs="+", default=[1])
     parser.add_argument(
-        "--generators", nargs="+", default=["sim", "independent"], choices=["sim", "independent"]
+        "--generators",
+        nargs="+",
+        default=["sim", "independent", "slow"],
+        choices=["sim", "independent", "slow"],
     )
+    parser.add_argument("--slow-strengths", type=float, nargs="+", default=[0.5, 1.0])
+    parser.add_argument("--slow-seeds", type=int, nargs="+", default=[1, 11])
+    parser.add_argument("--slow-duration", type=float, default=6.0, help="length of each slow record [s]")
     parser.add_argument(
         "--timing-duration", type=float, default=60.0, help="data length of the timing cases [s]"
     )
@@ -447,6 +527,11 @@ def main() -> int:
     if args.quick:
         args.strengths, args.seeds = [1.0], [1]
         args.independent_strengths, args.independent_seeds = [1.0], [1]
+        args.slow_strengths, args.slow_seeds = [1.0], [1]
+    if "slow" in args.generators:
+        slow_suite(args.slow_strengths, args.slow_seeds, args.slow_duration)
+        if set(args.generators) == {"slow"}:
+            return 0
 
     try:
         import pysindy  # noqa: F401

@@ -264,3 +264,62 @@ def carried_at_zero_case(strength: float = 1.0) -> Case:
     case = hidden_case(("load_side_friction",), strength)
     model = merge_sections(case.model, name="model-load_side_friction@zero", load_friction=ZERO_LOAD_FRICTION)
     return Case("load_side_friction@zero", case.hidden, case.truth, model, case.load_sensor)
+
+
+# --- slow friction factors on the independent generator (issue 27 item 5) --------------------------------
+
+THERMAL_NETWORK = {"T_ref": 25.0, "C_w": 5.0, "C_g": 8.0, "R_wg": 2.0, "R_wa": 6.0, "R_ga": 1.5}
+"""A small gear's network (gear time constant C_g·R_ga = 12 s): a run of seconds warms or cools it by
+several kelvin, so temperature varies within runs as well as between them."""
+BETA_T = 0.025
+"""The grease's law of `seed-thermal`: friction × exp(−0.025·(T_g − 25 °C)), ×0.54 from 0 to 25 K over."""
+K_WEAR = 1e-3
+"""Wear at a rate that shows within a short record: +10 % friction per 100 rad of motor travel."""
+THERMAL_DRIFT = {"d_th": -0.2, "tau_th": 2.0}
+"""Time drift of a short record: 20 % less friction once warm, with a 2 s time constant."""
+SLOW_RUNS = ((20.0, 45.0, 1.0), (20.0, 5.0, 0.4), (25.0, 25.0, 0.7))
+"""Per run: ambient and starting temperature [°C], and the scale of the lab profile's speeds. One gear
+cools from 45 °C, one warms from 5 °C, one stays near 25 °C; the speeds differ, so the travel does: time,
+temperature and travel are three different clocks across the runs."""
+SLOW_CASES = ("temperature", "temperature_flat", "carried", "wear", "time")
+"""`temperature`: only the gear temperature drives the friction (the model has no thermal law).
+`temperature_flat`: temperatures recorded at several levels, friction independent of them (null).
+`carried`: the temperature law in the truth and in the model alike (null). `wear`: friction rising with
+travel, temperatures recorded but without effect. `time`: friction falling with time since the start,
+likewise."""
+
+
+@dataclass(frozen=True)
+class SlowCase:
+    """Runs of the independent generator at several temperatures and travels, and the model judged."""
+
+    name: str
+    hidden: tuple[str, ...]  # the effects the model lacks (none: a null case)
+    runs: list[Run]
+    model: HarmonicDriveModel
+
+
+def slow_case(name: str, duration_s: float = 6.0, strength: float = 1.0, seed: int = 1) -> SlowCase:
+    """One of SLOW_CASES: three records of `duration_s` each (rigid joint, no output sensor), the slow
+    effect at `strength` × its nominal size, the generator's noise seeded `seed`, `seed` + 1, `seed` + 2."""
+    from hdrig_testing.independent_plant import IndependentRig, lab_profile
+
+    if name not in SLOW_CASES:
+        raise ValueError(f"unknown case {name!r} (cases: {', '.join(SLOW_CASES)})")
+    base = base_model(rigid=True)
+    beta = 0.0 if name in ("temperature_flat", "wear", "time") else strength * BETA_T
+    extra: dict[str, Any] = {
+        "wear": {"wear_drift": {"k_wear": strength * K_WEAR}},
+        "time": {"thermal_drift": {**THERMAL_DRIFT, "d_th": strength * THERMAL_DRIFT["d_th"]}},
+    }.get(name, {})
+    runs = []
+    for number, (ambient, start, scale) in enumerate(SLOW_RUNS, start=seed):
+        thermal = {**THERMAL_NETWORK, "T_amb": ambient, "T_gear0": start, "T_motor0": start, "beta_T": beta}
+        truth = merge_sections(base, name=f"truth-slow-{name}", thermal=thermal, **extra)
+        setpoint, load = lab_profile(duration_s)
+        runs.append(IndependentRig(truth, seed=number).record(scale * setpoint, load, with_load=False))
+    model = base
+    if name == "carried":
+        model = merge_sections(base, thermal={**THERMAL_NETWORK, "T_amb": 20.0, "beta_T": beta})
+    hidden = {"temperature": ("temperature_dependence",), "wear": ("wear_drift",), "time": ("thermal_drift",)}
+    return SlowCase(name, hidden.get(name, ()), runs, merge_sections(model, name=f"model-slow-{name}"))

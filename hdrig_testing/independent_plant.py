@@ -17,7 +17,9 @@ article or Coulomb–viscous motor law, the `stribeck` and `kinematic_error` sec
 static load friction, rigid or flexible, and the `thermal` section: a winding and a gear temperature of
 its own (the two-node network stepped per control period by its exact exponential, friction power and
 i_a²·R as heat; motor friction × exp(−beta_T·(T_g − T_ref))), recorded as temp_gear and temp_motor with
-0.05 °C of noise. Anything else is refused rather than silently ignored.
+0.05 °C of noise; and the slow drifts `thermal_drift` (time since the record's start) and `wear_drift`
+(motor travel since then), both held per control period. Anything else is refused rather than silently
+ignored.
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ SUPPORTED = {
     "kinematic_error",
     "stribeck",
     "thermal",
+    "thermal_drift",
+    "wear_drift",
     "numerics",
     "name",
     "description",
@@ -93,6 +97,20 @@ class _Truth:
         th = self.thermal
         self.T_g = th.gear_start_c if th is not None else 25.0
         self.T_w = th.motor_start_c if th is not None else 25.0
+        self.drifts = model.thermal_drift is not None or model.wear_drift is not None
+        self.d_th, self.tau_th = (
+            (model.thermal_drift.d_th, model.thermal_drift.tau_th) if model.thermal_drift else (0.0, 1.0)
+        )
+        self.k_wear = model.wear_drift.k_wear if model.wear_drift is not None else 0.0
+        self.drift = 1.0  # the two drifts' factor, held per control period (`drift_to`)
+
+    def drift_to(self, t_s: float, travel_rad: float) -> None:
+        """(1 + d_th·(1 − e^(−t/tau_th)))·(1 + k_wear·travel) at a period's start (docs/MODEL.md)."""
+        self.drift = (1 + self.d_th * (1 - math.exp(-t_s / self.tau_th))) * (1 + self.k_wear * travel_rad)
+
+    def scale(self) -> float:
+        """Every factor on the motor friction: the grease's law times the drifts (1.0 without them)."""
+        return self.warmth() * self.drift
 
     def warmth(self) -> float:
         """The grease's law: motor friction × exp(−beta_T·(T_g − T_ref)); 1 without a thermal section."""
@@ -137,10 +155,10 @@ class _Truth:
         else:
             level = c
         level = max(level, 0.0) + self.f_st * math.exp(-((omega / self.omega_st) ** 2))
-        return (direction * level + self.b_m * omega) * self.warmth()
+        return (direction * level + self.b_m * omega) * self.scale()
 
     def motor_static(self, theta: float) -> float:
-        return (self._levels(theta)[2] + self.f_st) * self.warmth()
+        return (self._levels(theta)[2] + self.f_st) * self.scale()
 
     def spring(self, th_m: float, w_m: float, th_l: float, w_l: float) -> float:
         err = self.A * math.sin(self.k * th_m + self.phi)
@@ -303,6 +321,7 @@ class IndependentRig:
             for c in ("t", "theta_m", "theta_l", "i_a", "cmd", "tau_ext", "temp_gear", "temp_motor")
         }
         integral, speed_est, last_count = 0.0, 0.0, 0.0
+        travel = 0.0  # motor travel since the start [rad], summed per period (reversals inside one: rare)
         alpha = h / (self.ctl.speed_filter_s + h)
         for i in range(n):
             count = math.floor(y[0] / q_m) * q_m
@@ -328,7 +347,11 @@ class IndependentRig:
                 f_m, f_l = self._friction(y, mode, self._psi(y, command, float(tau_ext_nm[i])))
                 w_l = p.r * y[1] if p.rigid else y[3]
                 p.heat(i_a * i_a * p.R, abs(f_m * y[1]) + (0.0 if p.rigid else abs(f_l * w_l)), h)
+            if p.drifts:
+                p.drift_to(i * h, travel)
+            before = y[0]
             y = self._period(y, mode, command, float(tau_ext_nm[i]), h)
+            travel += abs(y[0] - before)
         input_column = "i_cmd" if self.drive == "current" else "u"
         cols[input_column] = cols.pop("cmd")
         if not with_load:

@@ -11,6 +11,7 @@ regressor φ means the model lacks −β·φ of friction.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Callable
@@ -19,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from model.params import N_FOURIER, HarmonicDriveModel
+from model.params import N_FOURIER, HarmonicDriveModel, load_model
 from model.registry import OUT, SECTION_OWNERS, owned_by, parameter
 from rig.analysis.fit.parameters import get_values
 from rig.analysis.gaps.locate import CHANNEL_UNITS
@@ -103,6 +104,7 @@ class Context:
         self.folds = np.concatenate([(s.t // FOLD_BLOCK_S).astype(np.int64) % FOLDS for s in signals])
         self.duration_s = max(float(s.t[-1]) for s in signals)
         self._level: tuple[np.ndarray, float] | None = None
+        self.slow: dict[str, float] | None = None  # `slow_scores`, computed once
 
     def smooth(self, values: np.ndarray) -> np.ndarray:
         """A column of every run side by side, smoothed run by run like the residual."""
@@ -135,6 +137,15 @@ class Context:
         )
         return joint - alone, beta[:-1], float(beta[-1])
 
+    def beyond(self, own: Feature, rivals: list[Feature]) -> float:
+        """Held-out share of the motor channel `own` explains beyond `rivals` and the friction level: one
+        regression with all of them, less the same without `own` (nested models, both held out)."""
+        y = self.channels["motor"]
+        level = self.regressors("motor", _speed_factor(self.model))
+        others = np.column_stack([self.regressors("motor", *rivals), level]) if rivals else level
+        joint = cv_regression(y, np.column_stack([self.regressors("motor", own), others]), self.folds)[0]
+        return joint - cv_regression(y, others, self.folds)[0]
+
     def with_level(self, sections: dict[str, Any], beta_level: float) -> dict[str, Any]:
         """Sections plus the friction level moved by the joint regression."""
         if not self.karnopp:
@@ -165,6 +176,8 @@ STRENGTHS: dict[str, tuple[str, ...]] = {
     "direction_asymmetry": ("f_dir",),
     "load_dependent_friction": ("c_Ts",),
     "thermal_drift": ("d_th",),
+    "wear_drift": ("k_wear",),
+    "thermal": ("beta_T",),
     "load_friction": ("f_cl", "f_sl", "b_l"),
 }
 """The fields that make a section act: with all of them at zero the section is there but does nothing."""
@@ -438,29 +451,160 @@ def screen_load_dependent(ctx: Context) -> Candidate | None:
     )
 
 
+# --- friction that drifts: with time, with travel, with the measured temperature ------------------------
+# Three effects scale the whole motor friction by a slow factor: `thermal_drift` by the time since the
+# run's start, `wear_drift` by the motor travel since then, `temperature_dependence` by the gear's
+# measured temperature. Within one warm-up run all three rise together; runs at several temperatures and
+# travels tell them apart. So each is scored by what it explains of the motor residual BEYOND the others
+# the data offer (`slow_scores`, `Context.beyond`: one held-out regression with all of them and the
+# friction level, less the same without it): the share only that factor explains. An effect the model
+# carries is no rival.
+
+
+def _slow(factor: Callable[[Signals], np.ndarray]) -> Feature:
+    """sgn ω · |F_m| · factor: the model's motor friction scaled by a slow factor of the run."""
+
+    def feature(s: Signals, r: Residual) -> np.ndarray:
+        friction = np.where(s.stuck, 0.0, np.abs(r.rows[:, OUT.F_M]))
+        return direction(s, r) * friction * factor(s)
+
+    return feature
+
+
+def _warming(tau_s: float) -> Feature:
+    return _slow(lambda s: 1 - np.exp(-s.t / tau_s))
+
+
+def _best_warming(ctx: Context) -> tuple[float, float, float, float] | None:
+    """(held-out gain, τ, d_th, level coefficient) of the best warm-up time constant (d_th > −1)."""
+    best: tuple[float, float, float, float] | None = None
+    for tau in np.geomspace(ctx.duration_s / 30, 2 * ctx.duration_s, 12):
+        score, beta, level = ctx.level_regression(_warming(float(tau)))
+        if beta[0] < 1 and (best is None or score > best[0]):
+            best = (score, float(tau), -float(beta[0]), level)
+    return best
+
+
+def _reference_c(ctx: Context) -> float:
+    """The measured gear temperature's mean over every run [°C, to 0.1 °C]: the reference the fitted
+    friction level then holds at."""
+    values = [s.temp_gear for s in ctx.signals if s.temp_gear is not None]
+    return round(float(np.mean(np.concatenate(values))), 1)
+
+
+def _temperature_feature(t_ref_c: float) -> Feature:
+    # exp(−beta_T·(T_g − T_ref)) ≈ 1 − beta_T·(T_g − T_ref): the lacking friction is −beta_T·this.
+    def above(s: Signals) -> np.ndarray:
+        return np.zeros(s.n) if s.temp_gear is None else s.temp_gear - t_ref_c
+
+    return _slow(above)
+
+
+_travel: Feature = _slow(lambda s: s.travel)
+
+
+def _drift_features(ctx: Context) -> dict[str, Feature]:
+    """The slow factors the data offer and the model does not carry yet, by effect."""
+    if not ctx.karnopp:
+        return {}
+    out: dict[str, Feature] = {}
+    if not carried(ctx.model, "thermal_drift"):
+        best = _best_warming(ctx)
+        if best is not None:
+            out["thermal_drift"] = _warming(best[1])
+    if not carried(ctx.model, "wear_drift"):
+        out["wear_drift"] = _travel
+    if not carried(ctx.model, "thermal") and all(s.temp_gear is not None for s in ctx.signals):
+        out["temperature_dependence"] = _temperature_feature(_reference_c(ctx))
+    return out
+
+
+def slow_scores(ctx: Context) -> dict[str, float]:
+    """Each slow factor's held-out share of the motor residual beyond all the others the data offer.
+
+    When one of them explains something beyond the rest, the data tell them apart and each is scored
+    by that. When none does (one run with a repeated profile travels in proportion to time, its
+    temperature rising with both), time keeps its own score: a trend within a run is `thermal_drift`,
+    the plain explanation, and neither wear nor temperature is named on such data."""
+    if ctx.slow is None:
+        features = _drift_features(ctx)
+        ctx.slow = {
+            name: ctx.beyond(f, [g for other, g in features.items() if other != name])
+            for name, f in features.items()
+        }
+        if "thermal_drift" in ctx.slow and all(v < MIN_SCORE for v in ctx.slow.values()):
+            ctx.slow["thermal_drift"] = math.inf  # its own score stands (min with it below)
+    return ctx.slow
+
+
 def screen_thermal(ctx: Context) -> Candidate | None:
     if not ctx.karnopp or carried(ctx.model, "thermal_drift"):
         return None
-    best: tuple[float, float, float, float] | None = None
-    for tau in np.geomspace(ctx.duration_s / 30, 2 * ctx.duration_s, 12):
-
-        def warming(s: Signals, r: Residual, tau: float = float(tau)) -> np.ndarray:
-            friction = np.where(s.stuck, 0.0, np.abs(r.rows[:, OUT.F_M]))
-            return direction(s, r) * friction * (1 - np.exp(-s.t / tau))
-
-        score, beta, level = ctx.level_regression(warming)
-        if beta[0] < 1 and (best is None or score > best[0]):
-            best = (score, float(tau), -float(beta[0]), level)
+    best = _best_warming(ctx)
     if best is None:
         return None
     score, tau, d_th, level = best
+    score = min(score, slow_scores(ctx)["thermal_drift"])
     evidence = (
         f"residual torque trends over the run: friction × {1 + d_th:.2f} once warm, time constant"
-        f" ~{tau:.2g} s ({_pct(score)} more explained than by the friction level alone, held out)"
+        f" ~{tau:.2g} s ({_pct(score)} more explained than by the friction level"
+        f"{' and the other slow factors' if math.isfinite(slow_scores(ctx)['thermal_drift']) else ''}"
+        f" alone, held out)"
     )
     sections = ctx.with_level({"thermal_drift": {"d_th": d_th, "tau_th": tau}}, level)
     names = [*owned_by("thermal_drift"), ctx.level]
     return Candidate("thermal_drift", "motor", score, evidence, sections, names, [*owned_by("thermal_drift")])
+
+
+def screen_wear(ctx: Context) -> Candidate | None:
+    if not ctx.karnopp or carried(ctx.model, "wear_drift"):
+        return None
+    gain, beta, level = ctx.level_regression(_travel)
+    k_wear = -float(beta[0])
+    if k_wear <= 0:
+        return None
+    score = min(gain, slow_scores(ctx)["wear_drift"])
+    top = max(float(s.travel[-1]) for s in ctx.signals)
+    evidence = (
+        f"residual torque grows with the motor travel (up to {top:.3g} rad): friction × (1 + {k_wear:.2g}/rad"
+        f" · travel) explains {_pct(score)} more of it than the friction level and the other slow factors"
+        f" (time, and the measured temperature when recorded), held out"
+    )
+    sections = ctx.with_level({"wear_drift": {"k_wear": k_wear}}, level)
+    names = [*owned_by("wear_drift"), ctx.level]
+    return Candidate("wear_drift", "motor", score, evidence, sections, names, [*owned_by("wear_drift")])
+
+
+@functools.cache
+def _network() -> dict[str, float]:
+    """The thermal network a `temperature_dependence` candidate carries: `seed-thermal`'s capacities and
+    resistances. The gap workflow replays from the measured temperatures, so they do not enter its gap;
+    identify them from warm-up and cool-down runs (the thermal stage)."""
+    thermal = load_model("seed-thermal").thermal
+    assert thermal is not None
+    return {name: float(getattr(thermal, name)) for name in ("C_w", "C_g", "R_wg", "R_wa", "R_ga")}
+
+
+def screen_temperature(ctx: Context) -> Candidate | None:
+    """Friction that follows the run's measured gear temperature (a model without a thermal law)."""
+    if "temperature_dependence" not in _drift_features(ctx):
+        return None
+    t_ref = _reference_c(ctx)
+    gain, beta, level = ctx.level_regression(_temperature_feature(t_ref))
+    beta_t = float(beta[0])
+    score = min(gain, slow_scores(ctx)["temperature_dependence"])
+    lo = min(float(s.temp_gear.min()) for s in ctx.signals if s.temp_gear is not None)
+    hi = max(float(s.temp_gear.max()) for s in ctx.signals if s.temp_gear is not None)
+    evidence = (
+        f"residual torque follows the measured gear temperature ({lo:.1f}–{hi:.1f} °C): friction ×"
+        f" exp(−{beta_t:.3g}/K·(T_g − {t_ref:g} °C)) explains {_pct(score)} more of it than the friction"
+        f" level and the other slow factors (time, travel), held out"
+    )
+    thermal = {"T_amb": t_ref, "T_ref": t_ref, "beta_T": beta_t, **_network()}
+    sections = ctx.with_level({"thermal": thermal}, level)
+    return Candidate(
+        "temperature_dependence", "motor", score, evidence, sections, ["beta_T", ctx.level], ["beta_T"]
+    )
 
 
 # --- the transmission and the output side (need the output angle) ------------------------------------
@@ -624,6 +768,8 @@ SCREENS: dict[str, Callable[[Context], Candidate | None]] = {
     "hysteresis": screen_hysteresis,
     "load_side_friction": screen_load_side,
     "thermal_drift": screen_thermal,
+    "wear_drift": screen_wear,
+    "temperature_dependence": screen_temperature,
 }
 """Every effect of the docs/MODEL.md vocabulary, by name, with its screen."""
 

@@ -19,12 +19,11 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from model.params import HarmonicDriveModel
-from model.plant import Plant
 from model.registry import OUT
 from model.simulate import replay_rows
 from rig.analysis.gaps.locate import ANGLE_BINS, CHANNEL_UNITS, SPEED_EDGES, Where, locate
 from rig.analysis.gaps.residual import one_step_residual
-from rig.analysis.gaps.shooting import Shooting
+from rig.analysis.gaps.shooting import Shooting, StartedPlant, started
 from rig.analysis.gaps.signals import Signals
 from rig.analysis.gaps.workflow import GapOptions, GapsResult
 
@@ -89,7 +88,9 @@ def _window_plot(result: GapsResult, shooting: Shooting, path: Path) -> Path:
     ax = fig.subplots()
     ax.plot(w.run.t, w.theta_m, "k.", label="measured", markersize=4)
     for label, model in (("model given", first), ("model with the effects", result.model)):
-        rows = replay_rows(Plant(model), w.run, shooting.signals[w.signals].mode, shooting.dt_s, w.clock_s)
+        plant = StartedPlant(model)
+        plant.starts = started(model, w)
+        rows = replay_rows(plant, w.run, shooting.signals[w.signals].mode, shooting.dt_s, w.clock_s)
         ax.plot(w.run.t, rows[:, OUT.THETA_M], label=label)
     ax.set(xlabel="time [s]", ylabel="θ_m [rad]", title="the worst shooting window of the given model")
     ax.grid(True, alpha=0.3)

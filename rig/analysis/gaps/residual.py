@@ -27,7 +27,12 @@ from model.plant import MODES, Plant, kernel_vectors
 from model.registry import N_OUT, N_STATE, OUT, X
 from rig.analysis.gaps.signals import Signals
 
-"""Kernel states the data do not show (bristles, hysteresis element), tracked along the data."""
+MEASURED = (X.RISE_GEAR, X.RISE_MOTOR, X.TRAVEL)
+"""Kernel states a run can measure beside the motion: the gear's and the winding's temperatures above
+the network's ambient (recorded temp_gear, temp_motor) and the motor travel since the start."""
+_MEASURED_SLOTS = np.array(
+    [int(slot) for slot in MEASURED], dtype=np.int64
+)  # as the compiled pass reads them
 
 
 @njit(cache=True)
@@ -43,14 +48,19 @@ def _one_step_pass(
     theta_l: np.ndarray,
     omega_l: np.ndarray,
     load_known: bool,
+    start: np.ndarray,
+    measured: np.ndarray,
     dt_max: float,
     rows: np.ndarray,
     end: np.ndarray,
     internal: np.ndarray,
 ) -> None:
-    """Per sample: reset to the measured state, integrate one interval; rows, end speeds, internal states."""
+    """Per sample: reset to the measured state, integrate one interval; rows, end speeds, internal states.
+
+    `start` is the state the others start from (the thermal rises: the network runs along the data
+    from there); `measured[:, j]` sets slot j of MEASURED at each sample where it is finite."""
     n = t.shape[0]
-    x = np.zeros(N_STATE)
+    x = start.copy()
     buf = np.empty((1, N_OUT))
     load = np.empty(1)
     for i in range(n):
@@ -62,6 +72,9 @@ def _one_step_pass(
             x[X.THETA_L] = theta_l[i]
             x[X.OMEGA_L] = omega_l[i]
         x[X.TIME] = t[i]
+        for j in range(_MEASURED_SLOTS.shape[0]):
+            if not math.isnan(measured[i, j]):
+                x[_MEASURED_SLOTS[j]] = measured[i, j]
         internal[i, 0] = x[X.Z_M]
         internal[i, 1] = x[X.Z_L]
         internal[i, 2] = x[X.Z_H]
@@ -98,6 +111,25 @@ class Residual:
     rigid: bool
 
 
+def _measured_states(model: HarmonicDriveModel, sig: Signals) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel state the pass starts from and the MEASURED slots per sample (NaN: not measured).
+
+    With a `thermal` section the temperatures start where the model says (its T_motor0, T_gear0) and are
+    replaced by the recorded ones when the run has them; the travel is the measured one."""
+    start = np.zeros(N_STATE)
+    measured = np.full((sig.n, len(MEASURED)), np.nan)
+    thermal = model.thermal
+    if thermal is not None:
+        start[X.RISE_MOTOR] = thermal.motor_start_c - thermal.T_amb
+        start[X.RISE_GEAR] = thermal.gear_start_c - thermal.T_amb
+        if sig.temp_gear is not None:
+            measured[:, 0] = sig.temp_gear - thermal.T_amb
+        if sig.temp_motor is not None:
+            measured[:, 1] = sig.temp_motor - thermal.T_amb
+    measured[:, 2] = sig.travel
+    return start, measured
+
+
 def one_step_residual(model: HarmonicDriveModel, sig: Signals, dt_s: float) -> Residual:
     """The residual channels of `model` on one prepared run."""
     judged = judged_model(model, sig)
@@ -108,6 +140,7 @@ def one_step_residual(model: HarmonicDriveModel, sig: Signals, dt_s: float) -> R
     internal = np.empty((n, 3))
     load_known = sig.has_load and not judged.rigid
     zeros = np.zeros(n)
+    start, measured = _measured_states(judged, sig)
     _one_step_pass(
         p,
         flags,
@@ -120,6 +153,8 @@ def one_step_residual(model: HarmonicDriveModel, sig: Signals, dt_s: float) -> R
         sig.theta_l_smooth if load_known and sig.theta_l_smooth is not None else zeros,
         sig.omega_l if load_known and sig.omega_l is not None else zeros,
         load_known,
+        start,
+        measured,
         dt_s,
         rows,
         end,

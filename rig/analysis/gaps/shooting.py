@@ -6,7 +6,10 @@ output angle divided by r when it is measured (both in radians at the motor). Th
 
 `model.simulate.replay_rows` does the replay, giving each window the run's clock (thermal drift is a
 function of time since the run's start) and the unseen states (hysteresis element, bristles) tracked
-along the data by the one-step pass.
+along the data by the one-step pass. A window also starts from the states the run measured there
+(`started`): the gear's and the winding's temperatures when the model has a `thermal` section and the
+run recorded them (the friction follows the measured temperature, not a network started at ambient
+at every window), and the motor travel since the run's start (`wear_drift`).
 
 The fit is `rig.analysis.fit.trajectory`'s least squares and uncertainty on this residual: the cost is the
 gap itself on the training windows (the held-out windows judge the result), with tied parameters
@@ -20,16 +23,56 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from model.plant import Plant
-from model.registry import OUT
+from model.registry import OUT, X
 from model.simulate import replay_rows
 from rig.analysis.fit.parameters import with_values
 from rig.analysis.fit.trajectory import ParameterEstimate, TrajectoryProblem, solve
 from rig.analysis.gaps.residual import one_step_residual
 from rig.analysis.gaps.signals import Signals, Window
+
+Starts = dict[int, float]
+"""Kernel state slots (registry.X) set at a window's start from what the run measured there."""
+
+
+class StartedPlant(Plant):
+    """A plant whose reset also sets `starts`: `replay_rows` resets it at each window's first sample."""
+
+    def __init__(self, model: HarmonicDriveModel) -> None:
+        self.starts: Starts = {}
+        super().__init__(model)
+
+    def reset(
+        self,
+        theta_m: float = 0.0,
+        omega_m: float = 0.0,
+        theta_l: float | None = None,
+        omega_l: float | None = None,
+        time_s: float = 0.0,
+        hidden: ArrayLike | None = None,
+    ) -> None:
+        super().reset(theta_m, omega_m, theta_l, omega_l, time_s, hidden)
+        for slot, value in self.starts.items():
+            self.x[slot] = value
+
+
+def started(model: HarmonicDriveModel, window: Window) -> Starts:
+    """The measured states a window of `model` starts from: the temperatures' rises above the
+    network's ambient (a `thermal` section, temperatures recorded) and the travel (`wear_drift`)."""
+    out: Starts = {}
+    thermal = model.thermal
+    if thermal is not None and window.temp_gear_c is not None:
+        out[X.RISE_GEAR] = window.temp_gear_c - thermal.T_amb
+        if window.temp_motor_c is not None:
+            out[X.RISE_MOTOR] = window.temp_motor_c - thermal.T_amb
+    if model.wear_drift is not None:
+        out[X.TRAVEL] = window.travel_rad
+    return out
+
 
 METRIC = (
     "RMS error of the motor angle (and of the output angle / r, when measured) over shooting windows"
@@ -56,7 +99,7 @@ class Shooting:
 
     def errors(self, model: HarmonicDriveModel, which: Sequence[int]) -> list[np.ndarray]:
         """Per window: the stacked errors (θ_m, then θ_l / r) [rad at the motor]."""
-        plant = Plant(model)
+        plant = StartedPlant(model)
         internal = None
         if _has_unseen_states(model):
             internal = [one_step_residual(model, s, self.dt_s).internal for s in self.signals]
@@ -64,6 +107,7 @@ class Shooting:
         for i in which:
             w = self.windows[i]
             hidden = internal[w.signals][w.start] if internal is not None else None
+            plant.starts = started(model, w)
             rows = replay_rows(
                 plant, w.run, self.signals[w.signals].mode, self.dt_s, time_s=w.clock_s, hidden=hidden
             )

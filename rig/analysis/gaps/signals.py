@@ -24,6 +24,9 @@ from model.simulate import replay_mode
 SMOOTHING_S = 0.015
 """Width of the smoother: long enough to average encoder quantization out of accelerations, short
 against the motion (a 1 kHz run smooths over 15 samples)."""
+TEMPERATURE_S = 0.5
+"""Width of the moving average on a recorded temperature: the probe's noise (hundredths of a kelvin)
+averages out, while the gear's thermal time constants (tens of seconds and more) are untouched."""
 
 
 def _odd(n: float, least: int) -> int:
@@ -47,6 +50,9 @@ class Signals:
     omega_l: np.ndarray | None
     width: int  # samples of the smoother
     stuck: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # motor at rest in the data
+    temp_gear: np.ndarray | None = None  # °C, measured, averaged over TEMPERATURE_S (None: not recorded)
+    temp_motor: np.ndarray | None = None  # °C, likewise
+    travel: np.ndarray = field(default_factory=lambda: np.zeros(0))  # ∫|ω_m|dt since the start [rad]
 
     @property
     def n(self) -> int:
@@ -68,6 +74,21 @@ class Signals:
         a[1:-1] = 2 * np.diff(v) / (self.t[2:] - self.t[:-2])
         a[0], a[-1] = a[1], a[-2]
         return a
+
+
+TEMPERATURES = ("temp_gear", "temp_motor")
+
+
+def _temperature(run: Run, column: str, samples: int) -> np.ndarray | None:
+    """A recorded temperature [°C] under a centred moving average; None when not recorded (or not
+    throughout: a NaN anywhere)."""
+    if column not in run:
+        return None
+    values = np.asarray(run[column], dtype=np.float64)
+    if not np.all(np.isfinite(values)):
+        return None
+    width = max(1, samples)
+    return np.asarray(convolve1d(values, np.full(width, 1.0 / width), mode="nearest"))
 
 
 def prepare(run: Run, stick_band_rad_s: float, smoothing_s: float = SMOOTHING_S) -> Signals:
@@ -102,11 +123,15 @@ def prepare(run: Run, stick_band_rad_s: float, smoothing_s: float = SMOOTHING_S)
         omega_l=None if theta_l is None else derivative(theta_l),
         width=width,
     )
+    sig.temp_gear, sig.temp_motor = (_temperature(run, c, round(TEMPERATURE_S / h)) for c in TEMPERATURES)
     steps = np.abs(np.diff(theta_m))
     quantum = float(steps[steps > 0].min()) if np.any(steps > 0) else 0.0
     # At rest in the data: slower than one encoder count per smoother width, or inside the stick band.
     threshold = max(stick_band_rad_s, 2.0 * quantum / (width * h))
     sig.stuck = np.abs(sig.omega_m) < threshold
+    # Travel from the smoothed speed while moving: an encoder count dithering at rest adds none.
+    speed = np.where(sig.stuck, 0.0, np.abs(sig.omega_m))
+    sig.travel = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(t))])
     return sig
 
 
@@ -121,6 +146,9 @@ class Window:
     theta_m: np.ndarray  # measured, for comparison
     theta_l: np.ndarray | None
     test: bool  # held out from fitting
+    temp_gear_c: float | None = None  # measured at the first sample (None: not recorded)
+    temp_motor_c: float | None = None
+    travel_rad: float = 0.0  # motor travel since the run's start at the first sample
 
 
 def _clear_edges(sig: Signals, nominal: np.ndarray) -> np.ndarray:
@@ -161,7 +189,21 @@ def cut_windows(signals: list[Signals], window_s: float, test_every: int = 3) ->
             run = Run(cols, {"input_column": INPUT_COLUMN[sig.mode]})
             theta_l = None if sig.theta_l is None else sig.theta_l[a:b]
             test = len(out) % test_every == test_every - 1
-            out.append(Window(run, index, int(a), float(sig.t[a]), sig.theta_m[a:b], theta_l, test))
+            gear, motor = (None if v is None else float(v[a]) for v in (sig.temp_gear, sig.temp_motor))
+            out.append(
+                Window(
+                    run,
+                    index,
+                    int(a),
+                    float(sig.t[a]),
+                    sig.theta_m[a:b],
+                    theta_l,
+                    test,
+                    gear,
+                    motor,
+                    float(sig.travel[a]),
+                )
+            )
     if not out:
         raise UserInputError("no data long enough for a shooting window")
     return out
