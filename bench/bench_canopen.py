@@ -74,6 +74,28 @@ def cpu_busy() -> tuple[int, int] | None:
     return sum(fields) - idle, sum(fields)
 
 
+def child_cpu_s(rig: VirtualCanRig) -> float | None:
+    """CPU time [s] the twins' child has used so far (all its threads, user + system), from
+    /proc/PID/stat; None with the twins in this process or without /proc."""
+    if rig.child is None:
+        return None
+    try:
+        fields = Path(f"/proc/{rig.child.pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+
+
+def pin_process(pid: int, cpu: int) -> str:
+    """Every thread of process `pid` on `cpu` alone (threads it starts later inherit it); what it got."""
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            os.sched_setaffinity(int(task.name), {cpu})
+    except (OSError, AttributeError) as exc:
+        return f"not pinned to CPU {cpu}: {exc}"
+    return f"pinned to CPU {cpu}"
+
+
 def cpu_model() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -143,6 +165,12 @@ def main() -> None:
         default=(os.cpu_count() or 1) - 1,
         help="with realtime scheduling, the one CPU of the loop and the twins (default: the last); -1: any",
     )
+    parser.add_argument(
+        "--twins-cpu",
+        type=int,
+        default=None,
+        help="with the twins in a child: pin all its threads to this CPU once it runs (default: --cpu's)",
+    )
     args = parser.parse_args()
     lock = one_at_a_time()  # noqa: F841 (held until main returns)
     scheduling = "ordinary scheduling"
@@ -184,6 +212,8 @@ def main() -> None:
         "" if rig.child_start_s is None else f" (the twins' child answered after {rig.child_start_s:.2f} s)"
     )
     print(f"rig opened in {opened_s:.2f} s{child}")
+    if args.twins_cpu is not None and rig.child is not None:
+        print(f"the twins' child: {pin_process(rig.child.pid, args.twins_cpu)}")
     with rig, quiet_heap():  # this process owns the loop: its heap policy (rig.realtime)
         assert rig.daq is not None
         daq_rate = rig.daq.command("RATE?")
@@ -191,8 +221,10 @@ def main() -> None:
         rig.enable()
         syncs_before = syncs_answered(rig)
         busy0, cpu0, wall0 = cpu_busy(), time.process_time(), time.monotonic()
+        child0 = child_cpu_s(rig)
         result = rig.run_segment(Segment(ControlMode.VELOCITY, setpoint, args.load_nm, "sine"), blocks.append)
         busy1, cpu1, wall1 = cpu_busy(), time.process_time(), time.monotonic()
+        child1 = child_cpu_s(rig)
         syncs = syncs_answered(rig) - syncs_before
         rig.disable()
         tally = rig.daq_tally
@@ -265,6 +297,11 @@ def main() -> None:
         f"\nmachine load: 1-min load average {load_before:.2f} before, {load_after:.2f} after{busy};"
         f" this process {100 * (cpu1 - cpu0) / wall:.0f} % of one CPU over {wall:.1f} s"
     )
+    ran = max(len(rows), 1)
+    per_cycle = f"CPU per cycle: this process (loop, bus and DAQ threads) {(cpu1 - cpu0) / ran * 1e6:.0f} µs"
+    if child0 is not None and child1 is not None:
+        per_cycle += f", the twins' child {(child1 - child0) / ran * 1e6:.0f} µs"
+    print(per_cycle + f" (over {len(rows)} cycles)")
     if result.aborted:
         print(f"run aborted: {result.aborted}")
 

@@ -13,7 +13,7 @@ import copy
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import cast
 
@@ -217,6 +217,29 @@ class RecordedNetwork(canopen.Network):
             arbitration_id=can_id, data=data, is_extended_id=can_id > 0x7FF, is_remote_frame=remote
         )
         self.recorder.on_message_sent(msg)
+
+    def send_messages(self, frames: Sequence[tuple[int, bytes]]) -> float:
+        """Data frames (id, payload) in order, as `send_message` each; in one write where the bus takes
+        a batch (`hdrig-tcp`: the same frames, one system call). Returns the host monotonic time just
+        before the last frame was handed to the bus [s]."""
+        send_frames = getattr(self.bus, "send_frames", None)
+        if send_frames is None:
+            for can_id, data in frames[:-1]:
+                self.send_message(can_id, data)
+            t_last_s = time.monotonic()
+            self.send_message(*frames[-1])
+            return t_last_s
+        if not self.bus:
+            raise RuntimeError("Not connected to CAN bus")
+        t_last_s = time.monotonic()
+        with self.send_lock:
+            send_frames(frames)
+        self.check()
+        if self.recorder.recording:
+            for can_id, data in frames:
+                msg = can.Message(arbitration_id=can_id, data=data, is_extended_id=can_id > 0x7FF)
+                self.recorder.on_message_sent(msg)
+        return t_last_s
 
     def send_periodic(
         self,

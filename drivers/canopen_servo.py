@@ -142,6 +142,11 @@ class CanopenServo:
         self.od = settings.object_dictionary()
         self._tpdo = tpdo_layouts(self.od)
         self._tpdo1_names = [_TPDO1_NAMES[e.index] for e in self._tpdo[0].entries]
+        # Where each of TPDO 1's objects sits in its values (None: not mapped): no dict per answer.
+        self._tpdo1_at = {
+            name: self._tpdo1_names.index(name) if name in self._tpdo1_names else None
+            for name in _TPDO1_NAMES.values()
+        }
         self._plan: PdoPlan | None = None
         self.sync_timeout_s = settings.sync_timeout_s or max(10 * period_s, 0.02)
         self.network: RecordedNetwork | None = None
@@ -163,6 +168,7 @@ class CanopenServo:
         self._rx = threading.Condition()
         self._tpdo_values: list[tuple[int, ...] | None] = [None, None]
         self._tpdo_counts = [0, 0]
+        self._awaited: list[int] | None = None  # the counts a cycle waits to see exceeded
         self._tpdo_t_s = [0.0, 0.0]
         self._drive_heartbeat_t_s: float | None = None
         self._drive_nmt_state: int | None = None
@@ -552,13 +558,11 @@ class CanopenServo:
         sent = [(follower, follower._stage_payload()) for follower in self.followers]
         with self._rx:
             before = list(self._tpdo_counts)
+        frames = [(plan.rpdo_cob_id, payload)]
+        frames += [(cob_id, data) for _follower, (cob_id, data, _counts) in sent if data is not None]
+        frames.append((SYNC_COB_ID, b""))
         try:
-            network.send_message(plan.rpdo_cob_id, payload)
-            for _follower, (cob_id, data, _counts) in sent:
-                if data is not None:
-                    network.send_message(cob_id, data)
-            t_sync = time.monotonic()
-            network.send_message(SYNC_COB_ID, b"")
+            t_sync = network.send_messages(frames)  # one write where the bus allows: the same frames
         except can.CanError as exc:  # the bus failed under a working drive: a fault, not a setting
             raise CanopenServoError(f"node {self.settings.node_id}: cycle not sent: {exc}") from exc
         self._stamp_cycle(t_sync)
@@ -600,10 +604,14 @@ class CanopenServo:
     def _answer(self, network: RecordedNetwork, t_sync: float, before: list[int]) -> Feedback:
         """Wait for this drive's TPDOs answering the SYNC sent at `t_sync`."""
         with self._rx:
-            answered = self._rx.wait_for(
-                lambda: all(c > b for c, b in zip(self._tpdo_counts, before, strict=True)),
-                timeout=self.sync_timeout_s,
-            )
+            self._awaited = before  # the receive thread wakes this one only once all have come
+            try:
+                answered = self._rx.wait_for(
+                    lambda: all(c > b for c, b in zip(self._tpdo_counts, before, strict=True)),
+                    timeout=self.sync_timeout_s,
+                )
+            finally:
+                self._awaited = None
             self._silent = not answered
             if not answered:
                 failure = network.receive_failure.error
@@ -666,11 +674,14 @@ class CanopenServo:
         self, t_sync: float, latency_s: float, values1: tuple[int, ...], values2: tuple[int, ...]
     ) -> Feedback:
         scaling = self._scaling()
-        named = dict(zip(self._tpdo1_names, values1, strict=True))
-        statusword = named["statusword"]
-        torque_nm = scaling.torque_nm(named["torque"]) if "torque" in named else math.nan
-        if "current" in named and scaling.rated_current_a is not None:
-            current_a = scaling.current_a(named["current"])
+        at = self._tpdo1_at
+        statusword_at, torque_at, current_at = at["statusword"], at["torque"], at["current"]
+        mode_at = at["mode"]
+        assert statusword_at is not None  # TPDO 1 always maps the statusword (tpdo_layouts)
+        statusword = values1[statusword_at]
+        torque_nm = scaling.torque_nm(values1[torque_at]) if torque_at is not None else math.nan
+        if current_at is not None and scaling.rated_current_a is not None:
+            current_a = scaling.current_a(values1[current_at])
         else:
             current_a = torque_nm / scaling.torque_constant_nm_per_a
         return Feedback(
@@ -678,7 +689,7 @@ class CanopenServo:
             latency_s=latency_s,
             statusword=statusword,
             state=decode_statusword(statusword),
-            mode=named.get("mode"),
+            mode=values1[mode_at] if mode_at is not None else None,
             position_rad=scaling.position_rad(values2[0]),
             velocity_rad_s=scaling.velocity_rad_s(values2[1]),
             torque_nm=torque_nm,
@@ -768,8 +779,11 @@ class CanopenServo:
             with self._rx:
                 self._tpdo_values[n] = values
                 self._tpdo_t_s[n] = time.monotonic()
-                self._tpdo_counts[n] += 1
-                self._rx.notify_all()
+                counts = self._tpdo_counts
+                counts[n] += 1
+                awaited = self._awaited
+                if awaited is None or (counts[0] > awaited[0] and counts[1] > awaited[1]):
+                    self._rx.notify_all()  # not before the answer is whole: one wake-up, not one a TPDO
 
         return on_tpdo
 

@@ -71,12 +71,12 @@ class PdoLayout:
         entries = [PdoEntry(i, s, len(od_variable(od, i, s))) for i, s in objects]
         return cls.of(od, entries)
 
-    @property
+    @cached_property
     def bits(self) -> int:
         return sum(e.bits for e in self.entries)
 
-    @property
-    def length(self) -> int:
+    @cached_property
+    def length(self) -> int:  # read with every PDO decoded: once, not a sum each time
         """Bytes on the wire."""
         return (self.bits + 7) // 8
 

@@ -39,6 +39,11 @@ def encode(msg: can.Message) -> bytes:
     return FRAME.pack(msg.arbitration_id | flags, msg.dlc, bytes(msg.data).ljust(8, b"\0"))
 
 
+def encode_frame(can_id: int, data: bytes) -> bytes:
+    """A data frame's record from its id and payload (what `encode` makes of its message, without one)."""
+    return FRAME.pack(can_id | (EXTENDED_BIT if can_id > 0x7FF else 0), len(data), data)  # 8s pads with 0
+
+
 def decode(record: bytes, channel: str) -> can.Message:
     ident, dlc, data = FRAME.unpack(record)
     remote = bool(ident & REMOTE_BIT)
@@ -82,6 +87,15 @@ class TcpCanBus(can.BusABC):
         try:
             with self._send_lock:
                 self._sock.sendall(encode(msg))
+        except OSError as exc:
+            raise can.CanOperationError(f"hdrig-tcp {self._channel}: hub gone: {exc}") from exc
+
+    def send_frames(self, frames: Sequence[tuple[int, bytes]]) -> None:
+        """Data frames (id, payload) in order, in one write: the hub's reader takes them in one read
+        (a cycle's RPDOs and SYNC: one wake-up of the twins' process instead of one per frame)."""
+        try:
+            with self._send_lock:
+                self._sock.sendall(b"".join([encode_frame(can_id, data) for can_id, data in frames]))
         except OSError as exc:
             raise can.CanOperationError(f"hdrig-tcp {self._channel}: hub gone: {exc}") from exc
 
@@ -150,6 +164,11 @@ class _LocalBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._hub.repeat(encode(msg), source=self)
 
+    def send_frames(self, frames: Sequence[tuple[int, bytes]]) -> None:
+        """Data frames (id, payload) in order, as `send` each, without a message object for each."""
+        for can_id, data in frames:
+            self._hub.repeat(encode_frame(can_id, data), source=self)
+
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         try:
             return self.queue.get(timeout=timeout), False
@@ -177,6 +196,9 @@ class CanHub:
         self._direct = False  # a local bus takes its frames in the reader threads: no other is made
         self._closing = threading.Event()
         self._threads: list[threading.Thread] = []
+        # Per reader thread, while it hands one read's frames on: the records for each socket, written
+        # together after the last (`_read_loop`).
+        self._held = threading.local()
         self._accept = threading.Thread(target=self._accept_loop, name="hdrig can hub", daemon=True)
         self._accept.start()
 
@@ -206,7 +228,11 @@ class CanHub:
         with self._lock:
             sockets = [(s, lock) for s, lock in self._sockets.items() if s is not source]
             locals_ = [b for b in self._locals if b is not source]
+        held: dict[socket.socket, list[bytes]] | None = getattr(self._held, "records", None)
         for sock, lock in sockets:  # first: a local bus may take a while over its frame
+            if held is not None:
+                held.setdefault(sock, []).append(record)
+                continue
             try:
                 with lock:
                     sock.sendall(record)
@@ -243,9 +269,31 @@ class CanHub:
                 self._drop(sock)
                 return
             buffer += chunk
-            while len(buffer) >= FRAME.size:
-                record, buffer = buffer[: FRAME.size], buffer[FRAME.size :]
-                self.repeat(record, source=sock)
+            # What the frames of this read make a local bus send (a drive's answers to the SYNC that
+            # ends a cycle's RPDOs) goes out in one write per client once all are handed on: one
+            # wake-up of the master's receive thread per cycle instead of one per frame, same order.
+            held: dict[socket.socket, list[bytes]] = {}
+            self._held.records = held
+            try:
+                while len(buffer) >= FRAME.size:
+                    record, buffer = buffer[: FRAME.size], buffer[FRAME.size :]
+                    self.repeat(record, source=sock)
+            finally:
+                self._held.records = None
+                self._send_held(held)
+
+    def _send_held(self, held: dict[socket.socket, list[bytes]]) -> None:
+        with self._lock:
+            locks = {s: self._sockets.get(s) for s in held}
+        for sock, records in held.items():
+            lock = locks[sock]
+            if lock is None:  # dropped meanwhile
+                continue
+            try:
+                with lock:
+                    sock.sendall(b"".join(records))
+            except OSError:
+                self._drop(sock)
 
     def _drop(self, sock: socket.socket) -> None:
         with self._lock:

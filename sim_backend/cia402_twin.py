@@ -28,12 +28,12 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Final, cast
+from typing import Final, NamedTuple, cast
 
 import can
 import canopen
 import numpy as np
-from canopen.objectdictionary import ODVariable
+from canopen.objectdictionary import INTEGER_TYPES, ODVariable
 from canopen.sdo import SdoAbortedError
 
 from drivers.can_bus import RecordedNetwork
@@ -121,6 +121,22 @@ _INT16, _INT32 = (1 << 15) - 1, (1 << 31) - 1
 _MODES: Final = {int(m): m for m in OperationMode}  # a dict look-up costs less than the enum's call
 
 
+_NO_DATA: Final[dict[int, bytes]] = {}
+_ZERO_SAMPLE: Final = dict.fromkeys(SAMPLE_COLUMNS, 0.0)
+
+
+class _Codec(NamedTuple):
+    """An object's variable and the struct functions that stand for its decode_raw / encode_raw."""
+
+    var: ODVariable
+    pack: Callable[..., bytes] | None
+    unpack: Callable[[bytes], tuple[int, ...]] | None
+    size: int
+    """Bytes of a value the struct unpacks."""
+    low: float
+    high: float
+
+
 @dataclass
 class _Pdo:
     cob_id: int
@@ -185,6 +201,8 @@ class Cia402Twin:
         self._lock = threading.RLock()
         self._closing = threading.Event()
         self._vars: dict[tuple[int, int], ODVariable] = {}
+        self._codecs: dict[tuple[int, int], _Codec] = {}
+        self._decoded: dict[tuple[int, int], tuple[bytes | None, int]] = {}  # (stored bytes, value)
         self._absent: dict[tuple[int, int], tuple[object, ...]] = {}  # lacking: the KeyError's args
         self._eds_values: dict[tuple[int, int], bytes] = {}  # of objects with no value stored
         self._rpdos: dict[int, _Pdo] = {}
@@ -252,26 +270,63 @@ class Cia402Twin:
             return False
         return True
 
+    def _codec(self, index: int, subindex: int) -> _Codec:
+        """The object's variable and, for an integer one, its struct's pack and unpack and the range
+        `encode_raw` warns outside of; KeyError when the dictionary lacks it. Looked up once."""
+        codec = self._codecs.get((index, subindex))
+        if codec is None:
+            var = self._var(index, subindex)
+            packing = var.STRUCT_TYPES.get(var.data_type) if var.data_type in INTEGER_TYPES else None
+            low = var.min if var.min is not None else -math.inf
+            high = var.max if var.max is not None else math.inf
+            if packing is None:
+                codec = _Codec(var, None, None, 0, low, high)
+            else:
+                codec = _Codec(var, packing.pack, packing.unpack, packing.size, low, high)
+            self._codecs[index, subindex] = codec
+        return codec
+
     def _get(self, index: int, subindex: int = 0) -> int:
         # What LocalNode.get_data returns (it has no read callbacks here) without its look-ups, as each
-        # SYNC reads ~20 objects: the stored value, else the EDS's value or default, which never change.
-        var = self._var(index, subindex)  # KeyError when the dictionary lacks it
-        data = self.node.data_store.get(index, {}).get(subindex)
+        # SYNC reads ~20 objects: the stored value, else the EDS's value or default, which never change;
+        # decoded by the variable's struct, as decode_raw does for integers, without its type tests.
+        # The value decoded last is kept with the very bytes it came from: stored bytes never change,
+        # so while the store holds that same object the value stands (writes store new objects).
+        key = (index, subindex)
+        data = self.node.data_store.get(index, _NO_DATA).get(subindex)
+        decoded = self._decoded.get(key)
+        if decoded is not None and decoded[0] is data:
+            return decoded[1]
+        codec = self._codecs.get(key) or self._codec(index, subindex)  # KeyError: none
+        stored = data
         if data is None:
-            data = self._eds_values.get((index, subindex))
+            data = self._eds_values.get(key)
             if data is None:
                 data = self.node.get_data(index, subindex)  # an SDO abort when the EDS has no value
-                self._eds_values[index, subindex] = data
-        return int(var.decode_raw(data))
+                self._eds_values[key] = data
+        if codec.unpack is not None and len(data) == codec.size:
+            value = int(codec.unpack(data)[0])
+        else:
+            value = int(codec.var.decode_raw(data))  # its own error for a value of the wrong size
+        self._decoded[key] = (stored, value)
+        return value
 
     def _store(self, index: int, subindex: int, value: int) -> None:
         """Set an object as the drive itself does: no write callbacks, no access check."""
-        var = self._vars.get((index, subindex))
-        if var is None:
+        codec = self._codecs.get((index, subindex))
+        if codec is None:
             if not self._has(index, subindex):
                 return
-            var = self._var(index, subindex)
-        self.node.data_store.setdefault(index, {})[subindex] = var.encode_raw(value)
+            codec = self._codec(index, subindex)
+        if codec.pack is not None and codec.low <= value <= codec.high:
+            data = codec.pack(int(value))  # as encode_raw, which only warns outside the range
+        else:
+            data = codec.var.encode_raw(value)
+        store = self.node.data_store
+        values = store.get(index)
+        if values is None:
+            values = store[index] = {}
+        values[subindex] = data
 
     def _get_or(self, index: int, default: int, subindex: int = 0) -> int:
         """The object's value, or `default` when the dictionary lacks it or it holds no value."""
@@ -435,6 +490,7 @@ class Cia402Twin:
             self.node.set_data(entry.index, entry.subindex, var.encode_raw(value))
 
     def _send_tpdos(self) -> None:
+        frames: list[tuple[int, bytes]] = []
         for pdo in self._tpdos:
             try:
                 payload = pdo.layout.encode([self._get(e.index, e.subindex) for e in pdo.layout.entries])
@@ -446,7 +502,9 @@ class Cia402Twin:
             if pdo.transmission >= 254 and self._tpdo_sent.get(pdo.cob_id) == payload:
                 continue  # event-driven: sent when it changes (checked at each SYNC)
             self._tpdo_sent[pdo.cob_id] = payload
-            self.network.send_message(pdo.cob_id, payload)
+            frames.append((pdo.cob_id, payload))
+        if frames:
+            self.network.send_messages(frames)  # in one go where the bus takes a batch: the same frames
 
     # --- the cycle --------------------------------------------------------------------------------
 
@@ -668,10 +726,11 @@ class Cia402Twin:
         self._store(0x6061, 0, int(mode) if mode is not None else 0)
         if not self.last_sample:
             return
-        units = self._position_units_per_rad()
-        theta, omega, current = (self.last_sample[c] for c in ("theta_m", "omega_m", "i_a"))
-        self._store(0x6064, 0, _saturate(round(theta * units), _INT32))
-        self._store(0x606C, 0, _saturate(round(omega * self._velocity_units_per_rad_s()), _INT32))
+        position_units, velocity_units, _ = self._units or self._drive_units()
+        sample = self.last_sample
+        theta, omega, current = sample["theta_m"], sample["omega_m"], sample["i_a"]
+        self._store(0x6064, 0, _saturate(round(theta * position_units), _INT32))
+        self._store(0x606C, 0, _saturate(round(omega * velocity_units), _INT32))
         torque = current * self.model.motor.K_m
         self._store(0x6077, 0, _saturate(round(torque / self.rated_torque_nm * 1000), _INT16))
         self._store(0x6078, 0, _saturate(round(current / self.rated_current_a * 1000), _INT16))
@@ -843,8 +902,12 @@ class LoadTwin(Cia402Twin):
             if operational:
                 self._refresh_pdos()
                 pending, self._pending = self._pending, {}
-                for cob_id, payload in pending.items():
-                    self._apply_rpdo(self._rpdos[cob_id], payload)
+                self._applying_sync_rpdos = True  # published once, after the axis's step
+                try:
+                    for cob_id, payload in pending.items():
+                        self._apply_rpdo(self._rpdos[cob_id], payload)
+                finally:
+                    self._applying_sync_rpdos = False
             self._sync_count += 1
             torque = 0.0
             if self.state == State.OPERATION_ENABLED:
@@ -862,7 +925,7 @@ class LoadTwin(Cia402Twin):
             x = self.axis.plant.x
             self.t_s = self.axis.t_s
             self.last_sample = {
-                **dict.fromkeys(SAMPLE_COLUMNS, 0.0),
+                **_ZERO_SAMPLE,
                 "t": self.t_s,
                 "theta_m": float(x[X.THETA_L]),
                 "omega_m": float(x[X.OMEGA_L]),
