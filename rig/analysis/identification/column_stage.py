@@ -20,11 +20,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.signal import filtfilt
 
 from model.errors import UserInputError
 from model.params import HarmonicDriveModel
 from model.run import Run
-from rig.analysis.fit.inverse import InverseFit, inverse_model_fit
+from rig.analysis.fit.inverse import MIN_SPEED_SHARE, InverseFit, filtered_derivatives, inverse_model_fit
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.identification.dynamics_stage import back_emf_fit
 
@@ -49,6 +50,7 @@ class ColumnPlan:
     estimates: dict[str, tuple[float, float]] = field(default_factory=dict)  # closed-form value, 1σ
     inverse: InverseFit | None = None
     notes: list[str] = field(default_factory=list)
+    two_sided: dict[str, tuple[float, float]] | None = None  # `two_sided_start`, for the free parameters
 
 
 def motor_torque(run: Run, model: HarmonicDriveModel) -> np.ndarray | None:
@@ -206,6 +208,69 @@ def seeded_model(model: HarmonicDriveModel, fit: InverseFit) -> HarmonicDriveMod
         return None
 
 
+SIDES_CUTOFF_HZ = 50.0
+"""Low-pass corner of `two_sided_start`: above a flexible joint's first modes (the seed's ~13 Hz, with
+room for stiffer and lighter gears), below where a 14-bit encoder's second difference swamps the motor's
+acceleration (about 1e-3 N·m of noise per sample on the seed's J_m, against 0.07 N·m of friction)."""
+
+
+def _least_squares(design: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Coefficients of target ≈ design·β and their white-residual standard errors."""
+    beta, *_ = np.linalg.lstsq(design, target, rcond=None)
+    residual = target - design @ beta
+    dof = max(len(target) - design.shape[1], 1)
+    cov = np.linalg.pinv(design.T @ design) * float(residual @ residual) / dof
+    return beta, np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
+def two_sided_start(run: Run, model: HarmonicDriveModel) -> dict[str, tuple[float, float]] | None:
+    """A flexible joint's parameters from the two equations of motion by linear least squares (issue
+    25 item 1: a global start, not the seed's corner), on zero-phase filtered derivatives:
+
+    - the load: τ_ext = K_s·δ − J_l·α_l − f_cl·sgn ω_l − b_l·ω_l, δ = r·θ_m + e(θ_m) − θ_l (e the start
+      model's kinematic error): K_s, J_l, f_cl, b_l, their scale set by the load's own torque;
+    - the motor: T_m − r·K_s·δ = J_m·α_m + F_c·sgn ω_m + F_v·ω_m + offset, T_m from the input or i_a;
+      the article law's s3 = F_c + F_v·v_c and k_v = F_v/s3 (its level at v_c and slope).
+
+    Each side keeps the samples moving faster than 5 % of its top speed (the sign is known there).
+    None without θ_l, τ_ext or a known motor torque, or when a value comes out unphysical."""
+    torque = motor_torque(run, model)
+    if torque is None or "theta_l" not in run or "tau_ext" not in run or len(run) < 200:
+        return None
+    t, r = run.t, model.mechanics.r
+    ke = model.kinematic_error
+    error = 0.0 if ke is None else ke.A * np.sin(ke.k * run["theta_m"] + ke.phi)
+    try:
+        w_m, a_m, (b, a) = filtered_derivatives(t, run["theta_m"], SIDES_CUTOFF_HZ)
+        w_l, a_l, _ = filtered_derivatives(t, run["theta_l"], SIDES_CUTOFF_HZ)
+    except UserInputError:
+        return None
+    twist = filtfilt(b, a, r * run["theta_m"] + error - run["theta_l"])
+    load = filtfilt(b, a, run["tau_ext"])
+    edge = max(1, len(t) // 50)
+    inner = np.zeros(len(t), bool)
+    inner[edge:-edge] = True
+    on_l = inner & (np.abs(w_l) > MIN_SPEED_SHARE * np.max(np.abs(w_l[inner])))
+    design = np.column_stack([twist, -a_l, -np.sign(w_l), -w_l])[on_l]
+    (k_s, j_l, f_cl, b_l), se_l = _least_squares(design, load[on_l])
+    on_m = inner & (np.abs(w_m) > MIN_SPEED_SHARE * np.max(np.abs(w_m[inner])))
+    net = filtfilt(b, a, torque) - r * k_s * twist
+    design = np.column_stack([a_m, np.sign(w_m), w_m, np.ones(len(t))])[on_m]
+    (j_m, coulomb, viscous, _), se_m = _least_squares(design, net[on_m])
+    values = {"K_s": (k_s, se_l[0]), "J_l": (j_l, se_l[1]), "J_m": (j_m, se_m[0])}
+    if model.load_friction is not None and model.load_friction.load_law == "coulomb_viscous":
+        values |= {"f_cl": (f_cl, se_l[2]), "b_l": (max(b_l, 0.0), se_l[3])}
+    if model.motor_friction.motor_law == "article":
+        s3 = coulomb + viscous * (model.motor_friction.v_c or 0.0)
+        values |= {"s3": (s3, se_m[1]), "k_v": (viscous / s3 if s3 > 0 else math.nan, math.nan)}
+    positive = ("K_s", "J_l", "J_m", "f_cl", "s3")
+    if any(not value > 0 for name, (value, _) in values.items() if name in positive):
+        return None
+    if not all(math.isfinite(value) for value, _ in values.values()):
+        return None
+    return values
+
+
 def plan_for_plain_runs(runs: list[Run], model: HarmonicDriveModel) -> ColumnPlan:
     """Free and held parameters, closed-form motor constants and the inverse-model fit for these runs."""
     driven = [run for run in runs if run.input_column is not None]
@@ -224,6 +289,15 @@ def plan_for_plain_runs(runs: list[Run], model: HarmonicDriveModel) -> ColumnPla
             plan.estimates.update({n: values[n] for n in good})
         plan.notes.append(f"motor: {how}")
     plan.inverse = inverse_start(driven, plan.start)
+    if len(driven) == 1 and not model.rigid:
+        sides = two_sided_start(driven[0], plan.start)
+        if sides is not None:
+            plan.two_sided = {n: v for n, v in sides.items() if n in free}
+            shown = ", ".join(f"{n} = {v:.4g}" for n, (v, _) in plan.two_sided.items())
+            plan.notes.append(
+                f"two-sided least squares (load and motor equations, {SIDES_CUTOFF_HZ:g} Hz zero-phase"
+                f" filter): {shown}"
+            )
     if plan.inverse is not None:
         inv = plan.inverse
         plan.notes.append(

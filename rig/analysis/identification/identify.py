@@ -23,7 +23,13 @@ from model.params import HarmonicDriveModel, save_model
 from model.registry import JOINT_CANDIDATES, MOTOR
 from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
-from rig.analysis.fit.trajectory import CHANNELS, TrajectoryFit, TrajectoryProblem, fit_problem
+from rig.analysis.fit.trajectory import (
+    CHANNELS,
+    TrajectoryFit,
+    TrajectoryProblem,
+    fit_problem,
+    with_lifted_static,
+)
 from rig.analysis.identification.column_stage import axis_figures, plan_for_plain_runs, seeded_model
 from rig.analysis.identification.pipeline import Note, note_lines
 from rig.analysis.identification.staged import REQUIRED_META, staged_estimates
@@ -230,11 +236,20 @@ def _from_columns(plain: list[Run], start: HarmonicDriveModel, joint: bool) -> S
     staged_model = plan.start
     trajectory_runs = [r for r in plain if r.input_column is not None]
     names = list(plan.free)
+    others: dict[str, HarmonicDriveModel] = {}
     if plan.inverse is not None:
         inverse = {"fit": plan.inverse.as_json()}
         seeded = seeded_model(plan.start, plan.inverse)
         if seeded is not None:
-            staged_model = _better_start(seeded, plan.start, trajectory_runs, said)
+            others["inverse-model"] = seeded
+    if plan.two_sided:
+        try:
+            values = {n: v for n, (v, _) in plan.two_sided.items()}
+            others["two-sided least-squares"] = with_lifted_static(plan.start, values)
+        except UserInputError:
+            pass
+    if others:
+        staged_model = _better_start(others, plan.start, trajectory_runs, said)
     return Start(staged_model, rows, said, trajectory_runs, names, inverse)
 
 
@@ -257,8 +272,16 @@ def refine_jointly(start: HarmonicDriveModel, begun: Start, joint: bool, say: Pr
     worse than the start on every window."""
     notes = begun.said
     problem = TrajectoryProblem(
-        start, begun.trajectory_runs, [], JOINT_WINDOW_S, 1e-4, fitted_channels(start)
+        start,
+        begun.trajectory_runs,
+        [],
+        JOINT_WINDOW_S,
+        1e-4,
+        fitted_channels(start),
+        refine_voltage=_refine_voltage(begun.trajectory_runs),
     )
+    # Runs without metadata: no stage checked any value on data made for it; σ also from blocks of windows.
+    problem.block_sigma = not _refine_voltage(begun.trajectory_runs)
     train, _ = problem.split(HOLDOUT_EVERY)
     is_held = problem.window_of_residual % HOLDOUT_EVERY == HOLDOUT_EVERY - 1
     candidates = {"start": start, STAGED: begun.model}
@@ -300,7 +323,7 @@ def _polish(
     only if that does not lose what was won: never worse than the start or the staged model held out."""
     polished = fit_problem(
         problem.for_parameters(refined.model, names).with_priors(chosen.priors, refined.prior_weight),
-        max_evaluations=POLISH_EVALUATIONS,
+        max_evaluations=PLAIN_POLISH_EVALUATIONS if problem.block_sigma else POLISH_EVALUATIONS,
     )
     again = problem.residuals_of(polished.model)
     bar = min(chosen.held[label] for label in chosen.candidates if label != JOINT)
@@ -448,6 +471,10 @@ def _priors(rows: dict[str, ParameterRow], names: list[str]) -> dict[str, tuple[
 
 
 POLISH_EVALUATIONS = 6
+PLAIN_POLISH_EVALUATIONS = 2
+"""The polish of runs without metadata: one Gauss–Newton step on every window (a Jacobian and a trial).
+Six took a third of a 46 s lab record's fit (issue 25 item 5: 9.7 of 29 s); whether the five more steps
+move any value by a share of its σ was not measured (docs/BENCHMARKS.md, issue 25 items 5, 6)."""
 """Iterations of the polish on every window, from the optimum on three in four: it moves little (20
 iterations, with the 10 finite-difference evaluations of the Jacobian each, were a third of the time)."""
 
@@ -475,18 +502,29 @@ def disagreement_scales(
 
 
 def _better_start(
-    seeded: HarmonicDriveModel, start: HarmonicDriveModel, runs: list[Run], notes: list[Note]
+    others: dict[str, HarmonicDriveModel], start: HarmonicDriveModel, runs: list[Run], notes: list[Note]
 ) -> HarmonicDriveModel:
-    """The inverse-model start if its trajectories are closer to the data than the start model's."""
-    problem = TrajectoryProblem(start, runs, [], JOINT_WINDOW_S, 1e-4)
-    mine, theirs = _rms(problem.residuals_of(start)), _rms(problem.residuals_of(seeded))
-    if theirs < mine:
-        text = f"trajectory fit starts from the inverse-model estimates (error {theirs:.4g} < {mine:.4g})"
+    """Of the start model and the columns' estimates (`others`, by name), the one whose trajectories are
+    closest to the data."""
+    problem = TrajectoryProblem(start, runs, [], JOINT_WINDOW_S, 1e-4, refine_voltage=_refine_voltage(runs))
+    mine = _rms(problem.residuals_of(start))
+    theirs = {label: _rms(problem.residuals_of(model)) for label, model in others.items()}
+    best = min(theirs, key=lambda label: theirs[label])
+    if theirs[best] < mine:
+        text = f"trajectory fit starts from the {best} estimates (error {theirs[best]:.4g} < {mine:.4g})"
         notes.append(Note(COLUMNS, text, named=False))
-        return seeded
-    text = f"trajectory fit starts from the start model (inverse-model start: {theirs:.4g} ≥ {mine:.4g})"
+        return others[best]
+    shown = ", ".join(f"{label} start: {cost:.4g}" for label, cost in theirs.items())
+    text = f"trajectory fit starts from the start model ({mine:.4g}; {shown})"
     notes.append(Note(COLUMNS, text, named=False))
     return start
+
+
+def _refine_voltage(runs: list[Run]) -> bool:
+    """Whether the replay refines voltage steps (`TrajectoryProblem`'s `refine_voltage`): kept for
+    campaigns; runs without metadata alone take the coarse step with the back-EMF's lag compensated,
+    ten times cheaper (issue 25 item 5: a 46 s lab record in ≤ 20 s)."""
+    return any(carries_stage_metadata(r) for r in runs)
 
 
 def _start_value(model: HarmonicDriveModel, name: str) -> float:
