@@ -496,6 +496,19 @@ def slow_suite(strengths: list[float], seeds: list[int], duration_s: float) -> N
                     flush=True,
                 )
     worst = f"{100 * max(errors):.1f} %" if errors else "—"
+    # One record alone (the one warming from 5 °C): the three clocks rise together and cannot be told
+    # apart; the measured temperature is named by default, right for the first, wrong for the second.
+    for name in ("temperature", "time"):
+        case = slow_case(name, duration_s)
+        start = time.perf_counter()
+        result = find_gaps(case.runs[1:2], case.model)
+        seconds = time.perf_counter() - start
+        named = ", ".join(step.effect for step in result.steps) or "-"
+        print(
+            f"| {name}, one run | 1 | 1 | {case.hidden[0]} | {named} |"
+            f" {result.initial_gap:.3g} → {result.final_gap:.3g} | (not told apart) | {seconds:.1f} s |",
+            flush=True,
+        )
     print(
         f"\nslow factors: hits {hits}/{cases}, false alarms on nulls {alarms}/{nulls},"
         f" worst strength error of the hits {worst}"
@@ -517,7 +530,9 @@ def main() -> int:
         choices=["sim", "independent", "slow"],
     )
     parser.add_argument("--slow-strengths", type=float, nargs="+", default=[0.5, 1.0])
-    parser.add_argument("--slow-seeds", type=int, nargs="+", default=[1, 11])
+    # One seed: it draws only the current and temperature noise, which the workflow does not read or
+    # averages out (seeds 1 and 11 gave the same figures to three digits).
+    parser.add_argument("--slow-seeds", type=int, nargs="+", default=[1])
     parser.add_argument("--slow-duration", type=float, default=6.0, help="length of each slow record [s]")
     parser.add_argument(
         "--timing-duration", type=float, default=60.0, help="data length of the timing cases [s]"

@@ -106,3 +106,16 @@ def test_a_drift_in_time_is_named_thermal_drift_not_temperature():
     drift = result.model.thermal_drift
     assert drift is not None
     assert drift.d_th == pytest.approx(THERMAL_DRIFT["d_th"], rel=0.1)
+
+
+def test_one_warm_up_run_names_the_measured_temperature_and_says_it_could_not_tell():
+    """One record warming from 5 °C: time, travel and temperature rise together, so nothing is explained
+    beyond the others; the measured temperature is named (one parameter; the measured cause), and its
+    evidence says the data could not tell the three apart."""
+    case = _data("temperature")
+    result = find_gaps([case.runs[1]], case.model)
+    steps = [s for s in result.steps if s.effect in SLOW]
+    assert [s.effect for s in steps] == ["temperature_dependence"], result.verdict
+    assert "cannot be told apart" in steps[0].evidence
+    assert result.model.thermal is not None
+    assert result.model.thermal.beta_T == pytest.approx(BETA_T, rel=0.1)

@@ -523,18 +523,39 @@ def slow_scores(ctx: Context) -> dict[str, float]:
     """Each slow factor's held-out share of the motor residual beyond all the others the data offer.
 
     When one of them explains something beyond the rest, the data tell them apart and each is scored
-    by that. When none does (one run with a repeated profile travels in proportion to time, its
-    temperature rising with both), time keeps its own score: a trend within a run is `thermal_drift`,
-    the plain explanation, and neither wear nor temperature is named on such data."""
+    by that. When none does (one run with a repeated profile travels in proportion to time, and its
+    temperature rises with both), one keeps its own score (inf here, so the screen's own gain stands):
+    the measured temperature when the runs recorded it (the measured cause, and one parameter against
+    thermal_drift's two), else time, the plain explanation of a trend within a run; its evidence says
+    that the data could not tell them apart."""
     if ctx.slow is None:
         features = _drift_features(ctx)
         ctx.slow = {
             name: ctx.beyond(f, [g for other, g in features.items() if other != name])
             for name, f in features.items()
         }
-        if "thermal_drift" in ctx.slow and all(v < MIN_SCORE for v in ctx.slow.values()):
-            ctx.slow["thermal_drift"] = math.inf  # its own score stands (min with it below)
+        default = next((n for n in ("temperature_dependence", "thermal_drift") if n in ctx.slow), None)
+        if default is not None and all(v < MIN_SCORE for v in ctx.slow.values()):
+            ctx.slow[default] = math.inf
     return ctx.slow
+
+
+CLOCKS = {
+    "thermal_drift": "time",
+    "wear_drift": "travel",
+    "temperature_dependence": "the measured temperature",
+}
+
+
+def _untold(ctx: Context, effect: str) -> str:
+    """The evidence's note when `effect` is named by default: the slow factors were not told apart."""
+    if math.isfinite(slow_scores(ctx)[effect]) or len(slow_scores(ctx)) < 2:
+        return ""
+    clocks = [CLOCKS[n] for n in slow_scores(ctx)]
+    return (
+        f"; {', '.join(clocks[:-1])} and {clocks[-1]} rise together in these data and cannot be told apart"
+        " (runs at several temperatures and travels can)"
+    )
 
 
 def screen_thermal(ctx: Context) -> Candidate | None:
@@ -544,12 +565,12 @@ def screen_thermal(ctx: Context) -> Candidate | None:
     if best is None:
         return None
     score, tau, d_th, level = best
+    apart = math.isfinite(slow_scores(ctx)["thermal_drift"])
     score = min(score, slow_scores(ctx)["thermal_drift"])
     evidence = (
         f"residual torque trends over the run: friction × {1 + d_th:.2f} once warm, time constant"
         f" ~{tau:.2g} s ({_pct(score)} more explained than by the friction level"
-        f"{' and the other slow factors' if math.isfinite(slow_scores(ctx)['thermal_drift']) else ''}"
-        f" alone, held out)"
+        f"{' and the other slow factors' if apart else ''} alone, held out){_untold(ctx, 'thermal_drift')}"
     )
     sections = ctx.with_level({"thermal_drift": {"d_th": d_th, "tau_th": tau}}, level)
     names = [*owned_by("thermal_drift"), ctx.level]
@@ -598,7 +619,7 @@ def screen_temperature(ctx: Context) -> Candidate | None:
     evidence = (
         f"residual torque follows the measured gear temperature ({lo:.1f}–{hi:.1f} °C): friction ×"
         f" exp(−{beta_t:.3g}/K·(T_g − {t_ref:g} °C)) explains {_pct(score)} more of it than the friction"
-        f" level and the other slow factors (time, travel), held out"
+        f" level and the other slow factors (time, travel), held out{_untold(ctx, 'temperature_dependence')}"
     )
     thermal = {"T_amb": t_ref, "T_ref": t_ref, "beta_T": beta_t, **_network()}
     sections = ctx.with_level({"thermal": thermal}, level)
