@@ -503,9 +503,9 @@ def slow_suite(strengths: list[float], seeds: list[int], duration_s: float) -> N
         start = time.perf_counter()
         result = find_gaps(case.runs[1:2], case.model)
         seconds = time.perf_counter() - start
-        named = ", ".join(step.effect for step in result.steps) or "-"
+        names = ", ".join(step.effect for step in result.steps) or "-"
         print(
-            f"| {name}, one run | 1 | 1 | {case.hidden[0]} | {named} |"
+            f"| {name}, one run | 1 | 1 | {case.hidden[0]} | {names} |"
             f" {result.initial_gap:.3g} → {result.final_gap:.3g} | (not told apart) | {seconds:.1f} s |",
             flush=True,
         )
