@@ -20,9 +20,11 @@ sweeps 0.64 rad at the output, inside its stroke). Prints a table with the targe
 
 By default the process asks for the FIFO real-time class on one CPU (`rig.realtime.realtime_scheduling`;
 its threads and the twins' child inherit both) and says what it got; `--scheduling ordinary` runs
-without, `--cpu -1` on any CPU. The machine's load is printed with the figures: the 1-minute load
-average before and after, the share of all CPUs busy during the run (/proc/stat), and this process's
-CPU time over the wall time.
+without, `--cpu -1` on any CPU, `--twins-cpu N` puts the twins' child on CPU N (as a bench's drives
+compute off the host; measured and kept off by default: docs/BENCHMARKS.md, issue 26's per-cycle cost).
+The machine's load is printed with the figures: the 1-minute load average before and after, the share
+of all CPUs busy during the run (/proc/stat), this process's CPU time over the wall time, and the CPU
+time per cycle of this process and of the twins' child (/proc/PID/stat: all threads, user + system).
 """
 
 from __future__ import annotations

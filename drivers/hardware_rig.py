@@ -782,17 +782,32 @@ class HardwareRig(Rig):
         self.daq_tally.extrapolated += int(np.count_nonzero(t_sync > t_host[-1]))
         rows[:, _COLUMN["theta_l"]] = _interpolate(t_sync, t_host, theta_l)
         keep = max(0, int(np.searchsorted(t_host, t_last, side="right")) - 1)
-        for name, channel in self._channels.items():
-            if adc.shape[1] != ANALOG_CHANNELS:
-                raise DaqError(f"DAQ: samples without the analog inputs that daq.channels.{name} reads")
-            value = channel.value(_interpolate(t_sync, t_host, adc[:, channel.adc]))
-            self.daq_tally.out_of_range += int(np.count_nonzero(np.isnan(value)))
-            self._analog_rows[name] = value
+        if self._channels:
+            self._analog_rows = self._analog_values(t_sync, t_host, adc)
         self._daq_samples = [(t_device[keep:], theta_l[keep:], theta_m[keep:], adc[keep:])]
         if log is not None:
             log.t_done_s[-1] = time.monotonic()  # the chunk's last cycle waited for the alignment
             # The log's own check, not the loop's work: after the cycle is done.
             log.daq_theta_m_rad.extend(_interpolate(t_sync, t_host, theta_m).tolist())
+
+    def _analog_values(
+        self, t_sync: np.ndarray, t_host: np.ndarray, adc: np.ndarray
+    ) -> dict[str, np.ndarray]:
+        """Each `daq.channels` column at the SYNC times: its reading interpolated as θ_l is, then
+        `AnalogChannel.value` (NaN outside the sensor's range, counted). All channels in one pass of
+        array operations, element by element the same arithmetic: at a chunk's end, in its last cycle."""
+        names = list(self._channels)
+        if adc.shape[1] != ANALOG_CHANNELS:
+            raise DaqError(f"DAQ: samples without the analog inputs that daq.channels.{names[0]} reads")
+        channels = [self._channels[name] for name in names]
+        readings = _interpolate_columns(t_sync, t_host, adc[:, [c.adc for c in channels]])
+        gain, offset, low, high = (
+            np.array([[getattr(c, f)] for c in channels]) for f in ("gain", "offset", "min", "max")
+        )
+        value = gain * readings + offset
+        value = np.where((value >= low) & (value <= high), value, np.nan)
+        self.daq_tally.out_of_range += int(np.count_nonzero(np.isnan(value)))
+        return dict(zip(names, value, strict=True))  # rows of a C-ordered array: each contiguous
 
     def _merged_daq(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The samples kept so far as one array each (device time, θ_l, θ_m, analog rows), kept so."""
@@ -875,6 +890,18 @@ def worst_bus_load(servos: list[CanopenServo], period_s: float) -> BusLoad:
             plans.append(PdoPlan(rpdo, tpdo1, tpdo2, servo.settings.node_id))
     bitrate = servos[0].settings.bitrate
     return bus_load(plans, period_s, bitrate)
+
+
+def _interpolate_columns(t: np.ndarray, t_samples: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """`_interpolate` of each column of `values` (samples × columns), as rows (columns × len(t))."""
+    out = np.empty((values.shape[1], len(t)))
+    for j in range(values.shape[1]):
+        out[j] = np.interp(t, t_samples, values[:, j])
+    beyond = t > t_samples[-1]
+    if beyond.any() and len(t_samples) > 1:
+        slope = (values[-1] - values[-2]) / (t_samples[-1] - t_samples[-2])
+        out[:, beyond] = values[-1][:, None] + slope[:, None] * (t[beyond] - t_samples[-1])
+    return out
 
 
 def _interpolate(t: np.ndarray, t_samples: np.ndarray, values: np.ndarray) -> np.ndarray:
