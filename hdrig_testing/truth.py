@@ -13,10 +13,6 @@ Two kinds of truth are used, and each check says which:
   sensors, the current as a torque proxy and the sampling do to the figure);
 - *plant law*: the property the metric names, from the model's parameters at the conditions of the run
   (what the experiment's design does to the figure: e.g. friction against speed measured at other places).
-
-A check with `open_issue` set is known to fail today for the reason it names (another change fixes it):
-the harness runs it as a strict expected failure, so it reports the failure and fails as soon as the check
-passes, when the mark must go.
 """
 
 from __future__ import annotations
@@ -133,7 +129,6 @@ class Check:
     abs_tol: float = 0.0
     rel_tol: float = 0.0
     reason: str = ""  # why the tolerance is what it is
-    open_issue: str | None = None  # known to fail today, and why (the fix that removes the mark)
     run_tol: Callable[[TruthRun], float] | None = None  # a tolerance the run's settings set, added
     bounds: Callable[[TruthRun, str], tuple[float, float]] | None = None
     """For a metric that is itself a bound (a bracket's end, a stated resolution): the interval (lo, hi]
@@ -302,7 +297,13 @@ _add(
         abs_tol=2 * 2 * math.pi / 131072,
         reason="the same windows on the true θ_m: the encoder's rounding",
     ),
-    Check(r"turns_(min|max)", _same_analysis, reason="whole turns of the true θ_m: exact"),
+    Check(
+        "coverage_min",
+        _same_analysis,
+        abs_tol=2 * 2 * math.pi / 131072 / (2 * math.pi),
+        reason="the share of its whole turns a window covers, on the true θ_m: the encoder's rounding at"
+        " both ends",
+    ),
     Check(
         "windows_load_unsteady",
         _same_analysis,
@@ -314,14 +315,12 @@ _add(
         _sweep_law,
         rel_tol=0.02,
         reason="plant law at the sweep's centre (one turn about it): issue 30's 2 %",
-        open_issue="issue 30: each speed is averaged at another place of the stroke (H4)",
     ),
     Check(
         r"viscous_(pos|neg)_nm_s_rad",
         _sweep_law,
         rel_tol=0.10,
         reason="plant law at the sweep's centre: issue 30's 10 % (C·k_v + b_m + r²·b_l on the seed)",
-        open_issue="issue 30: each speed is averaged at another place of the stroke (H4)",
     ),
 )
 
@@ -629,13 +628,20 @@ _add(
 
 def _lv_levels(tr: TruthRun) -> tuple[np.ndarray, np.ndarray]:
     """(τ_ext, mean over the sweep's windows of the plant's steady |friction| at the sweep's centre) per
-    load; the law includes friction that grows with the transmitted torque (c_Ts·|T_s|, true T_s)."""
+    load; the law includes friction that grows with the transmitted torque (c_Ts·|T_s|, true T_s). The
+    windows the level averages: those the analysis marks load-steady (checked apart, as the speed
+    sweep's `windows_load_unsteady`)."""
     from rig.experiments.load_variation import load_prefix
+    from rig.experiments.speed_sweep import sweep_centre
 
+    table = tr.results.tables["friction_vs_velocity_by_load"]
     levels = []
     for tau in tr.params.loads_nm:
-        windows = _windows(tr, load_prefix(tau), tr.params.settle_s)
-        _, friction = _law_friction_vs_speed(tr, windows, _centre(tr, windows))
+        mine = table["tau_ext_nm"] == tau
+        steady = set(table["omega_set"][mine & (table["load_steady"] > 0.5)].tolist())
+        windows = [w for w in _windows(tr, load_prefix(tau), tr.params.settle_s) if w[0] in steady]
+        centre = sweep_centre(tr.params.sweep(tau), tr.ctx)
+        _, friction = _law_friction_vs_speed(tr, windows, centre)
         levels.append(float(np.mean(np.abs(friction))))
     return np.asarray(tr.params.loads_nm, dtype=float), np.asarray(levels)
 
@@ -659,9 +665,6 @@ _add(
         _lv_metric,
         rel_tol=0.02,
         reason="plant law at the sweep's centre (as the speed sweep's Coulomb level, issue 30: 2 %)",
-        open_issue="issue 30 item 2: each speed is averaged at another place of the stroke (+2.5 %); H4's"
-        " same-place sweep (WIP 5b73f47, not on main) left the windows where the load sticks in the level"
-        " (−2 %)",
     ),
     Check(
         "friction_per_load_nm_per_nm",

@@ -98,7 +98,7 @@ def home(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def realtime_rig(tmp_path: Path) -> Path:
-    """configs/rigs/sim.yaml paced to the wall clock: a default speed sweep lasts ~18 s."""
+    """configs/rigs/sim.yaml paced to the wall clock: a default speed sweep lasts ~53 s."""
     config = yaml.safe_load((REPO / "configs/rigs/sim.yaml").read_text())
     config.update(name="sim-realtime", pace="realtime")
     path = tmp_path / "sim-realtime.yaml"

@@ -60,8 +60,9 @@ AXE = ROOT / "tests" / "vendor" / "axe.min.js"  # axe-core from npm (MPL-2.0, te
 
 
 def _sweep_length_s() -> float:
-    """The default speed sweep's length in wall-clock seconds on a realtime rig: every speed both ways,
-    settle then hold (the travel limit can only shorten holds)."""
+    """A lower bound of the default speed sweep's length in wall-clock seconds on a realtime rig: every
+    speed both ways, settle then hold (its ramps, the moves between passes and the whole turns of the
+    fast speeds make it longer: ~53 s on the sim rig)."""
     p: Any = EXPERIMENTS["speed-sweep"].Params()  # the sweep's own fields, not the base class's
     return 2 * len(p.speeds_rad_s) * (p.settle_s + p.hold_s)
 

@@ -24,9 +24,13 @@ method rather than noise, both cases share it (observed errors on this truth in 
 - A 1.5 % / 1.2 %, φ 0.03 rad abs [0.7 / 0.7 %, 3e-4 rad]: the error is seen through the load's response
   G(jkω) ≈ −K_s/(J_l·(kω)²), so A carries the FRF's J_l error 1:1 (−0.6 %); the method's own is
   +0.04 % (σ 0.13 %; was −1.7 %, tests/test_stiffness_stage.py).
-- s1, s2 0.3 % / 0.1 % [0.03 / 0.02 %]; s3 0.02 % / 0.005 % [0.005 / 0.0002 %, noisy σ 0.003 %]: the
+- s1, s2 0.3 % / 0.1 % [0.12, 0.09 % / 0.02 %]; s3 0.07 % / 0.005 % [0.022 % / 0.0002 %]: the
   passes and the windows with the motor's and the load's momentum (the speed ripple the velocity loop
-  lets each friction harmonic make; the ringing load in the windows).
+  lets each friction harmonic make; the ringing load in the windows). The sweep measures every speed at
+  one place (its centre c ≈ 119 rad), so the windows fix C(c) = s1·c² + s2·c + s3 and s3 takes the
+  position stage's s1, s2 error at c: the stage's σ, which carries their covariance, is 0.022 % noisy,
+  and the tolerance 3σ. (When the sweep's speeds sat at other places, s3 came out within 0.005 %, σ
+  0.003 %, but the sweep's own friction-against-speed was wrong: issue 30.)
 - k_v 1 % / 0.5 % [0.24 / 0.19 %]: k_v·C·ω is 4 % of the friction at 100 rad/s; what is left at the true
   parameters, +0.15 %, is the simulated plant's 0.1 ms step (the same campaign from a 10 µs plant:
   +0.02 %, σ 0.007 %); noisy σ 0.1 %. (Before: 1.2 %, from the sampled momentum at the windows' ends
@@ -50,6 +54,8 @@ from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.identification.staged import StagedResult, staged_estimates
 from rig.config import RigConfig, Sensors, load_rig_config
+from rig.experiments.base import context_from_run
+from rig.experiments.speed_sweep import SpeedSweepParams, sweep_centre
 from rig.runner import run_experiment
 from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
@@ -69,7 +75,7 @@ TOLERANCES: dict[str, tuple[float, float, bool]] = {
     "phi": (0.03, 0.03, False),
     "s1": (0.003, 0.001, True),
     "s2": (0.003, 0.001, True),
-    "s3": (0.0002, 0.00005, True),
+    "s3": (0.0007, 0.00005, True),
     "k_v": (0.01, 0.005, True),
     "static_factor": (0.015, 0.015, True),
 }
@@ -186,7 +192,7 @@ def test_low_speed_windows_where_the_output_reverses_are_dropped(results: dict[s
 
 
 def test_missing_experiments_skip_their_stages_and_flag_their_parameters(
-    noisy_runs: list[Run], start: HarmonicDriveModel
+    noisy_runs: list[Run], start: HarmonicDriveModel, seed: HarmonicDriveModel
 ):
     subset = [run for run in noisy_runs if run.meta["experiment"] in ("speed-sweep", "pulse")]
     result = staged_estimates(subset, start)
@@ -200,9 +206,17 @@ def test_missing_experiments_skip_their_stages_and_flag_their_parameters(
     assert "inseparable from s3" in result.estimate("f_cl").note
     assert result.estimate("R").identifiable and result.estimate("s3").identifiable
     assert any(n.startswith("friction-position: skipped") for n in result.notes)
-    # Without the chirp the sweep's momentum is reckoned with the start's inertias, and s1, s2, a, b
-    # stay at the start: s3 still comes out close (the passes' positions average the ripple out).
-    assert result.estimate("s3").value == pytest.approx(0.072, rel=0.05)
+    # Without position-friction s1, s2, a, b stay at the start (s1 +30 %, s2 −20 %). The sweep measures
+    # every speed's friction at one place, its centre c, so what it determines is C(c) = s1·c² + s2·c + s3:
+    # s3 takes the held s1, s2's error at c (−20 % here), and C(c) comes out as the truth's within 5 %
+    # (+2.2 % measured): the Fourier terms are held at 0, which the slow speeds' windows, shorter than a
+    # turn, do not average out, and without the chirp the windows' momentum is reckoned with the start's
+    # inertias.
+    sweep = next(run for run in subset if run.meta["experiment"] == "speed-sweep")
+    c = sweep_centre(SpeedSweepParams.model_validate(sweep.meta["params"]), context_from_run(sweep))
+    held, true = get_values(start, ["s1", "s2"]), get_values(seed, ["s1", "s2", "s3"])
+    fitted_c = held["s1"] * c**2 + held["s2"] * c + result.estimate("s3").value
+    assert fitted_c == pytest.approx(true["s1"] * c**2 + true["s2"] * c + true["s3"], rel=0.05)
     assert np.isfinite(result.estimate("k_v").value)
 
 

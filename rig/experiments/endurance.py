@@ -2,13 +2,14 @@
 
 Program: checkpoint 0, then blocks of duty cycle (position mode: out and back over `duty_stroke_rad`
 under a constant output load), each followed by the next checkpoint. A checkpoint is the speed sweep in
-small: each speed forward then back, once unloaded and once with `stiffness_load_nm` on the output, then
-one slow position pass each way. Every segment returns where it began, so each checkpoint sees the same
-stretch of the stroke and the estimates differ only by what changed in the gear.
+small: each speed forward then back unloaded, every speed over the same motor turns about one centre (the
+speed sweep's `same_place_program`), then each speed forward then back with `stiffness_load_nm` on the
+output, then one slow position pass each way. Every checkpoint returns where it began, so each sees the
+same stretch of the stroke and the estimates differ only by what changed in the gear.
 
 Per checkpoint (catalog table `checkpoints`, `hdrig trend`):
-- the friction level F_c and viscous slope b from |K_m·i_a| = F_c + b·|ω_m| over the unloaded holds, with
-  their standard errors from the regression residuals;
+- the friction level F_c and viscous slope b from |K_m·i_a| = F_c + b·|ω_m| over the unloaded holds (each
+  hold's smooth friction at the checkpoint's one place), with standard errors from the regression residuals;
 - the stiffness K_s from the deflection r·θ_m − θ_l each held speed shows with and without the load:
   at steady speed the transmitted torque grows by exactly the load, so K_s = load / Δdeflection; its
   uncertainty is the standard error over the speeds and directions.
@@ -46,6 +47,7 @@ from rig.experiments.base import (
     within_rig_speed,
 )
 from rig.experiments.plots import new_figure, save_figure
+from rig.experiments.speed_sweep import SpeedSweepParams, same_place_program, same_place_table
 from rig.interface import Block, ControlMode, Segment
 
 DUTY_SEGMENT_S = 60.0  # duty blocks are cut into segments of about a minute that share one set-point array
@@ -129,17 +131,28 @@ def _label(checkpoint: int, name: str) -> str:
     return f"{CHECKPOINT_PREFIX}{checkpoint:04d}/{name}"
 
 
+def _sweep(params: EnduranceParams) -> SpeedSweepParams:
+    """The checkpoint's unloaded holds: the speed sweep's same-place passes at its speeds, settle and hold."""
+    return SpeedSweepParams(speeds_rad_s=params.speeds_rad_s, settle_s=params.settle_s, hold_s=params.hold_s)
+
+
 def checkpoint_program(params: EnduranceParams, ctx: RigContext, index: int) -> list[Segment]:
-    """One checkpoint: unloaded holds, loaded holds, the position pass; each forward then back."""
-    segments: list[Segment] = []
+    """One checkpoint: the unloaded holds at one place (the speed sweep's `same_place_program`, so the
+    friction against speed is not position against speed), the loaded holds, the position pass; each
+    forward then back, ending where it began."""
+    segments = same_place_program(_sweep(params), ctx, prefix=_label(index, ""), experiment="endurance")
     hold = ctx.cycles(params.settle_s + params.hold_s)
-    for load, tag in ((0.0, ""), (params.stiffness_load_nm, "L")):
-        for speed in params.speeds_rad_s:
-            for sign in (1.0, -1.0):
-                name = f"v{sign * speed:+g}{tag}"
-                segments.append(
-                    Segment(ControlMode.VELOCITY, np.full(hold, sign * speed), load, _label(index, name))
+    for speed in params.speeds_rad_s:
+        for sign in (1.0, -1.0):
+            name = f"v{sign * speed:+g}L"
+            segments.append(
+                Segment(
+                    ControlMode.VELOCITY,
+                    np.full(hold, sign * speed),
+                    params.stiffness_load_nm,
+                    _label(index, name),
                 )
+            )
     passing = ctx.cycles(params.pass_stroke_rad / params.pass_speed_rad_s)
     for sign, mark in ((1.0, "+"), (-1.0, "-")):
         passes = np.full(passing, sign * params.pass_speed_rad_s)
@@ -192,22 +205,17 @@ def _hold_window(run: Run, seg: dict[str, Any], ctx: RigContext, settle_s: float
     return slice(start, int(seg["start"]) + int(seg["cycles"]))
 
 
-def friction_estimate(run: Run, ctx: RigContext, prefix: str, settle_s: float) -> dict[str, _Estimate]:
-    """F_c and b with standard errors from the unloaded holds and the passes of one checkpoint."""
-    speeds, torques = [], []
-    for seg in segments_of(run, prefix):
-        name = seg["label"][len(prefix) :]
-        if name.endswith("L"):
-            continue
-        rows = _hold_window(run, seg, ctx, settle_s)
-        torque = ctx.torque_constant_nm_per_a * run["i_a"][rows] - ctx.gear_ratio * run["tau_ext"][rows]
-        speeds.append(abs(float(np.mean(run["omega_m"][rows]))))
-        torques.append(abs(float(np.mean(torque))))
+def friction_estimate(
+    run: Run, ctx: RigContext, prefix: str, params: EnduranceParams
+) -> dict[str, _Estimate]:
+    """F_c and b with standard errors from the unloaded holds of one checkpoint: each hold's friction at
+    the checkpoint's one place (`same_place_table`), regressed on its speed."""
+    table = same_place_table(run, _sweep(params), ctx, prefix=prefix)
+    speeds, torques = np.abs(table["omega_m"]), np.abs(table["torque_nm"])
     x = np.column_stack([np.ones(len(speeds)), speeds])
-    y = np.asarray(torques)
-    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
-    residual = y - x @ coef
-    dof = max(1, len(y) - 2)
+    coef, *_ = np.linalg.lstsq(x, torques, rcond=None)
+    residual = torques - x @ coef
+    dof = max(1, len(torques) - 2)
     cov = float(residual @ residual) / dof * np.linalg.inv(x.T @ x)
     return {
         "coulomb_nm": _Estimate(float(coef[0]), math.sqrt(cov[0, 0])),
@@ -307,7 +315,7 @@ def _checkpoint(
     own = segments_of(run, prefix)
     if len(own) < len(checkpoint_program(params, ctx, 0)):
         return None  # a checkpoint the run did not finish (aborted)
-    friction = friction_estimate(run, ctx, prefix, params.settle_s)
+    friction = friction_estimate(run, ctx, prefix, params)
     stiffness = stiffness_estimate(run, ctx, prefix, params)
     span = slice(int(own[0]["start"]), int(own[-1]["start"]) + int(own[-1]["cycles"]))
     # At the checkpoint's middle: the gear drifts a little while it is measured.

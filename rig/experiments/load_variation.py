@@ -4,6 +4,12 @@ At constant speed docs/MODEL.md gives T_m = F_m + r·(τ_ext + F_l): the motor c
 gear as well as friction. The friction part is therefore K_m·i_a − r·τ_ext. With friction that does not
 depend on the transmitted torque it is the same at every load; a level growing with |τ_ext| is the
 signature of `load_dependent_friction` (c_Ts·|T_s| on the motor, T_s ≈ τ_ext at the output).
+
+Each load's sweep is the speed sweep's same-place sweep (`same_place_program`): every speed at every load
+is measured over whole motor turns about the same centre, so position-dependent friction is the same in
+every figure and a change of level is load, not place. The level is the mean over the speeds at which
+the output moved steadily along (where the kinematic error makes it stick or run back at low speed, the
+load's friction averages to anything).
 """
 
 from __future__ import annotations
@@ -25,7 +31,13 @@ from rig.experiments.base import (
     RigContext,
 )
 from rig.experiments.plots import new_figure, save_figure
-from rig.experiments.speed_sweep import SpeedSweepParams, coulomb_viscous_fit, friction_table, sweep_program
+from rig.experiments.speed_sweep import (
+    SpeedSweepParams,
+    coulomb_viscous_fit,
+    same_place_program,
+    same_place_table,
+    sweep_centre,
+)
 from rig.interface import ControlMode, Segment
 
 
@@ -46,7 +58,11 @@ class LoadVariationParams(ExperimentParams):
         default=0.3, gt=0, le=10, description="time to reach steady speed, not averaged [s]"
     )
     hold_s: float = Field(
-        default=0.7, gt=0, le=60, description="averaging window per speed and direction [s]"
+        default=0.7,
+        gt=0,
+        le=60,
+        description="averaging time per speed and direction, as whole motor turns about the sweep's centre"
+        " (the speed sweep's) [s]",
     )
     travel_fraction: float = Field(
         default=0.8, gt=0, le=1, description="share of the free stroke ahead a pass may use [–]"
@@ -114,7 +130,7 @@ class LoadVariation(Experiment):
             prefix = load_prefix(tau)
             # Changing the load at standstill, slowly, keeps the load mode's ringing out of the sweep.
             segments.append(load_ramp(ctx, previous, tau, params.ramp_s, prefix + "ramp"))
-            segments += sweep_program(params.sweep(tau), ctx, prefix=prefix)
+            segments += same_place_program(params.sweep(tau), ctx, prefix=prefix)
             previous = tau
         # Unload before the drive is disabled: a bench's load actuator must not back-drive a free arm.
         segments.append(load_ramp(ctx, previous, 0.0, params.ramp_s, "unload"))
@@ -126,21 +142,40 @@ class LoadVariation(Experiment):
         levels: dict[str, list[float]] = {
             k: [] for k in ("tau_ext_nm", "level_nm", "level_pos_nm", "level_neg_nm", "viscous_nm_s_rad")
         }
+        notes = []
         for tau in params.loads_nm:
-            table = friction_table(run, ctx, params.settle_s, prefix=load_prefix(tau))
+            table = same_place_table(run, params.sweep(tau), ctx, prefix=load_prefix(tau))
             table["friction_nm"] = table["torque_nm"] - r * tau
             table["tau_ext_nm"] = np.full(len(table["omega_set"]), tau)
             per_load.append(table)
-            friction = np.abs(table["friction_nm"])
-            forward = table["omega_set"] > 0
-            fit = coulomb_viscous_fit({**table, "torque_nm": table["friction_nm"]})
+            steady = table["load_steady"] > 0.5
+            if not np.any(steady & (table["omega_set"] > 0)) or not np.any(steady & (table["omega_set"] < 0)):
+                notes.append(
+                    f"τ_ext = {tau:g} N·m: no speed with the output moving steadily both ways; all used"
+                )
+                steady = np.ones_like(steady)
+            friction = np.abs(table["friction_nm"])[steady]
+            forward = table["omega_set"][steady] > 0
+            fit = coulomb_viscous_fit(
+                {name: column[steady] for name, column in table.items()}
+                | {"torque_nm": table["friction_nm"][steady]}
+            )
             levels["tau_ext_nm"].append(tau)
             levels["level_pos_nm"].append(float(np.mean(friction[forward])))
             levels["level_neg_nm"].append(float(np.mean(friction[~forward])))
             levels["level_nm"].append(float(np.mean(friction)))
             slopes = [fit[k] for k in ("viscous_pos_nm_s_rad", "viscous_neg_nm_s_rad") if k in fit]
             levels["viscous_nm_s_rad"].append(float(np.mean(slopes)) if slopes else float("nan"))
-        columns = ("tau_ext_nm", "omega_set", "omega_m", "torque_nm", "friction_nm", "torque_std", "theta_m")
+        columns = (
+            "tau_ext_nm",
+            "omega_set",
+            "omega_m",
+            "torque_nm",
+            "friction_nm",
+            "torque_std",
+            "theta_m",
+            "load_steady",
+        )
         by_load = {name: np.concatenate([t[name] for t in per_load]) for name in columns}
         level_table = {name: np.asarray(values) for name, values in levels.items()}
 
@@ -156,10 +191,11 @@ class LoadVariation(Experiment):
             slope, intercept = np.polyfit(np.abs(level_table["tau_ext_nm"]), level, 1)
             metrics["friction_per_load_nm_per_nm"] = float(slope)
             metrics["level_at_no_load_nm"] = float(intercept)
-        notes = [
-            "friction_nm = K_m·i_a − r·τ_ext (the load carried through the gear removed);"
-            " level_nm = mean |friction_nm| over the sweep's speeds",
-        ]
+        notes.append(
+            "friction_nm = K_m·i_a − r·τ_ext (the load carried through the gear removed), each speed's at"
+            f" θ_m = {sweep_centre(params.sweep(0.0), ctx):.4g} rad (the speed sweep's same place);"
+            " level_nm = mean |friction_nm| over the speeds where the output moved steadily (load_steady)"
+        )
         tables = {"friction_vs_velocity_by_load": by_load, "friction_level_by_load": level_table}
         return Results(metrics, tables, notes)
 

@@ -1,8 +1,11 @@
 """`no-load-torque`: the catalog's no-load running torque. Unloaded, the input runs at each speed in
-turn, forward then backward (so the output comes back), and the torque it takes is averaged once steady:
-the input transducer's `tau_in` where the bench has one, else K_m·i_a. Where the run records the gear's
-temperature, each point carries its mean temperature, so runs at several temperatures group by it
-(the catalog gives the curves from −10 to +40 °C).
+turn, forward then backward, and the torque it takes is read once steady: the input transducer's `tau_in`
+where the bench has one, else K_m·i_a. Every speed is measured at the same place, as the speed sweep
+measures it (`rig.experiments.speed_sweep.same_place_program`: passes across the same whole input turns
+about one centre, the smooth part at the centre fitted beside the per-turn ripple), so a friction that
+depends on the input's position reads the same in every speed's figure and the curve is speed alone.
+Where the run records the gear's temperature, each point carries its mean temperature, so runs at
+several temperatures group by it (the catalog gives the curves from −10 to +40 °C).
 """
 
 from __future__ import annotations
@@ -19,12 +22,12 @@ from rig.experiments.base import (
     SPEED_MAX_RAD_S,
     Experiment,
     ExperimentParams,
-    ProgramError,
     Results,
     RigContext,
     segment_rows,
 )
 from rig.experiments.plots import new_figure, save_figure
+from rig.experiments.speed_sweep import SpeedSweepParams, same_place_program, same_place_table, sweep_centre
 from rig.interface import ControlMode, Segment
 
 NAME = "no-load-torque"
@@ -38,8 +41,19 @@ class NoLoadTorqueParams(ExperimentParams):
         max_length=LIST_MAX,
         description="input speeds [rad/s]",
     )
-    settle_s: float = Field(default=0.5, gt=0, le=60, description="time to reach steady speed [s]")
-    hold_s: float = Field(default=1.0, gt=0, le=600, description="averaging time per speed and direction [s]")
+    # Bounds: the speed sweep's, whose same-place passes this runs.
+    settle_s: float = Field(default=0.5, gt=0, le=10, description="time to reach steady speed [s]")
+    hold_s: float = Field(
+        default=1.0,
+        gt=0,
+        le=60,
+        description="averaging time per speed and direction, as whole input turns about one centre [s]",
+    )
+
+
+def sweep_of(params: NoLoadTorqueParams) -> SpeedSweepParams:
+    """The same-place passes of the speed sweep at these speeds, settle and hold, unloaded."""
+    return SpeedSweepParams(speeds_rad_s=params.speeds_rad_s, settle_s=params.settle_s, hold_s=params.hold_s)
 
 
 def input_torque(run: Run, ctx: RigContext) -> np.ndarray:
@@ -54,51 +68,39 @@ class NoLoadTorque(Experiment):
     needs = frozenset({ControlMode.VELOCITY})
 
     def program(self, params: NoLoadTorqueParams, ctx: RigContext) -> list[Segment]:
-        cycles = ctx.cycles(params.settle_s + params.hold_s)
-        reach_out = ctx.gear_ratio * max(params.speeds_rad_s) * (params.settle_s + params.hold_s)
-        limits = ctx.config.limits
-        if ctx.gear_ratio * ctx.theta_m0 + reach_out > limits.travel_max_out_rad:
-            raise ProgramError(
-                f"{NAME}: a pass at {max(params.speeds_rad_s):g} rad/s turns the output {reach_out:.3g} rad,"
-                f" past rig {ctx.config.name!r}'s travel limit: shorten hold_s or use a bench such as"
-                " sim-dyno"
-            )
-        program = []
-        for speed in sorted(params.speeds_rad_s):
-            for sign, way in ((1.0, "fwd"), (-1.0, "bwd")):
-                program.append(
-                    Segment(ControlMode.VELOCITY, np.full(cycles, sign * speed), 0.0, f"{way}{speed:g}")
-                )
-        program.append(Segment(ControlMode.VELOCITY, np.zeros(ctx.cycles(0.5)), 0.0, "stop"))
-        return program
+        return same_place_program(sweep_of(params), ctx, experiment=NAME)
 
     def analyze(self, run: Run, params: NoLoadTorqueParams, ctx: RigContext) -> Results:
+        sweep = sweep_of(params)
+        passes = same_place_table(run, sweep, ctx, torque=input_torque(run, ctx))
         settle = ctx.cycles(params.settle_s)
-        torque = input_torque(run, ctx)
         table: dict[str, list[float]] = {"speed_rad_s": [], "torque_fwd_nm": [], "torque_bwd_nm": []}
         if "temp_gear" in run:
             table["temp_gear_c"] = []
         for speed in sorted(params.speeds_rad_s):
             table["speed_rad_s"].append(speed)
-            temps = []
-            for way in ("fwd", "bwd"):
-                rows = segment_rows(run, f"{way}{speed:g}")
-                w = slice(rows.start + settle, rows.stop)
-                table[f"torque_{way}_nm"].append(float(np.mean(torque[w])))
-                if "temp_gear" in run:
-                    temps.append(float(np.mean(run["temp_gear"][w])))
-            if temps:
+            for sign, way in ((1.0, "fwd"), (-1.0, "bwd")):
+                (at,) = np.flatnonzero(passes["omega_set"] == sign * speed)
+                table[f"torque_{way}_nm"].append(float(passes["torque_nm"][at]))
+            if "temp_gear" in run:
+                rows = [segment_rows(run, f"v{sign * speed:+g}") for sign in (1.0, -1.0)]
+                temps = [np.mean(run["temp_gear"][w.start + settle : w.stop]) for w in rows]
                 table["temp_gear_c"].append(float(np.mean(temps)))
         arrays = {k: np.asarray(v) for k, v in table.items()}
         magnitude = 0.5 * (arrays["torque_fwd_nm"] - arrays["torque_bwd_nm"])
         metrics: dict[str, float | int | str] = {
             "no_load_torque_min_speed_nm": float(magnitude[0]),
             "no_load_torque_max_speed_nm": float(magnitude[-1]),
+            "centre_rad": sweep_centre(sweep, ctx),
             "source": "tau_in" if "tau_in" in run else "K_m·i_a",
         }
         if "temp_gear_c" in arrays:
             metrics["temp_gear_c"] = float(np.mean(arrays["temp_gear_c"]))
-        return Results(metrics=metrics, tables={"no_load_torque": arrays})
+        notes = [
+            f"every speed's torque at one place, input angle θ_m = {metrics['centre_rad']:.6g} rad: the"
+            " smooth part over whole input turns about it, fitted beside the per-turn ripple"
+        ]
+        return Results(metrics=metrics, tables={"no_load_torque": arrays}, notes=notes)
 
     def plot(
         self, run: Run, results: Results, params: NoLoadTorqueParams, ctx: RigContext, out_dir: Path
