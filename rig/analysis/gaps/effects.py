@@ -540,6 +540,8 @@ def slow_scores(ctx: Context) -> dict[str, float]:
     return ctx.slow
 
 
+SLOW_EFFECTS = ("temperature_dependence", "thermal_drift", "wear_drift")
+"""The effects scored by `slow_scores`: friction scaled by a slow factor of the run."""
 CLOCKS = {
     "thermal_drift": "time",
     "wear_drift": "travel",

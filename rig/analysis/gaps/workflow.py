@@ -47,6 +47,7 @@ from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.fit.trajectory import ParameterEstimate
 from rig.analysis.gaps.effects import (
+    SLOW_EFFECTS,
     SYSTEMATIC,
     Candidate,
     Context,
@@ -322,6 +323,13 @@ def _shortlist(candidates: list[Candidate], count: int) -> list[Candidate]:
     # Stribeck and static friction both add friction near zero speed: one is tried only beside the other,
     # so that the decay with speed (`_tell_static_from_stribeck`) decides between them, not the screen's
     # ranking (with another effect in the residual, Stribeck's screen score fell out of the shortlist).
+    # A slow factor's score is only what it explains beyond the other slow factors (effects.slow_scores),
+    # a share no other screen is cut down to: the best of them is tried whatever its rank (wear at 1.5×
+    # the nominal rate fell to fifth behind the level, load-dependent and static friction, and
+    # load-dependent friction took its place).
+    slow = next((c for c in candidates if c.effect in SLOW_EFFECTS), None)
+    if slow is not None and slow not in chosen:
+        chosen.append(slow)
     named = {c.effect for c in chosen}
     for one, other in (("static_friction", "stribeck"), ("stribeck", "static_friction")):
         partner = next((c for c in candidates if c.effect == other), None)
