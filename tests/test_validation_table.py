@@ -97,9 +97,10 @@ def test_a_wrong_model_is_flagged_well_above_the_floor(
 def test_a_replay_starts_where_the_measured_run_started(tmp_path_factory: pytest.TempPathFactory) -> None:
     """The replay's first samples are the measured run's, ringing and all: a step played right after a
     short load-variation (whose unload leaves the load ringing) is replayed by the same model from its
-    first state. Over the first 0.1 s the two load angles stay within 1 % of the ring's p-p (the starting
-    speeds are estimated from 16 noisy samples; 0.7 % seen), where a replay from rest misses by the ring
-    itself."""
+    first state. Over the first 0.1 s the two load angles stay within 5 % of the ring's p-p, where a replay
+    from rest misses by the ring itself. The gap, ~3e-5 rad, does not scale with the ring (the starting
+    state is estimated from 16 noisy samples): 0.7 % of the 5 mrad ring the load-variation left when its
+    passes ended at speed, 3.0 % of the 0.9 mrad its unload leaves since they end at rest (issue 30)."""
     from rig.analysis.identification.validation import _replay_experiment
 
     rig = SimRig(CFG)
@@ -116,4 +117,4 @@ def test_a_replay_starts_where_the_measured_run_started(tmp_path_factory: pytest
     ring = float(np.ptp(measured["theta_l"][first]))
     assert ring > 100 * CFG.sensors.load_sensor_noise_rad, "the premise: the step starts ringing"
     gap = np.abs(replayed["theta_l"][first] - measured["theta_l"][first])
-    assert float(np.max(gap)) < 0.01 * ring, f"replay off by {np.max(gap):.3g} rad on a {ring:.3g} rad ring"
+    assert float(np.max(gap)) < 0.05 * ring, f"replay off by {np.max(gap):.3g} rad on a {ring:.3g} rad ring"
