@@ -307,6 +307,10 @@ def refine_jointly(start: HarmonicDriveModel, begun: Start, joint: bool, say: Pr
     chosen = Choice(candidates, cost, held, min(fair, key=lambda label: held[label]), refined, priors)
     if chosen.kept == JOINT and refined is not None:
         _polish(problem, is_held, chosen, refined, begun.names, notes)
+        if problem.block_sigma and chosen.refined is not None:
+            _sigma_backed_by_cost(
+                problem.for_parameters(chosen.refined.model, begun.names), chosen.refined, notes
+            )
     _say_verdict(chosen, fair, notes)
     return chosen
 
@@ -337,6 +341,57 @@ def _polish(
                 named=False,
             )
         )
+
+
+CURVATURE_SIGMAS = 3.0
+"""`_sigma_backed_by_cost` moves each parameter by this many of its σ."""
+
+
+def _sigma_backed_by_cost(problem: TrajectoryProblem, fit: TrajectoryFit, notes: list[Note]) -> None:
+    """Each σ checked against the cost itself (issue 25 item 2): moved by ±3σ alone, a parameter must
+    raise the residual's sum of squares by at least 9·s² (s² its per-row variance at the optimum), as a
+    quadratic cost with that σ would, the others held (re-optimizing them could only lower the rise).
+
+    Friction makes the cost a staircase in a breakaway level: the finite-difference Jacobian spans a
+    stair's edge and its slope promises a curvature the cost does not have (a drawn gear: static_factor
+    ± 0.00046, 17σ from the truth; f_cl ± 0.0002, 20σ). Where the rise falls short, σ is widened to
+    where the measured rise would reach 9·s² if the cost were quadratic; with no rise it is not
+    determined. Two residual evaluations per parameter, on every window."""
+    base = problem.residuals_of(fit.model)
+    rss0 = float(base @ base)
+    s2 = rss0 / max(len(base) - len(problem.names), 1)
+    widened = []
+    for p in fit.parameters:
+        if not p.identifiable or p.std_error is None or p.std_error <= 0:
+            continue
+        rises = []
+        for sign in (1.0, -1.0):
+            try:
+                moved = problem.model_with({p.name: p.estimate + sign * CURVATURE_SIGMAS * p.std_error})
+            except UserInputError:
+                continue
+            r = problem.residuals_of(moved)
+            rises.append(float(r @ r) - rss0)
+        if not rises:
+            continue
+        rise = float(np.mean(rises))
+        needed = CURVATURE_SIGMAS**2 * s2
+        if rise >= needed:
+            continue
+        if rise <= 0:
+            p.identifiable, p.std_error = False, None
+            p.note = f"the cost does not rise within ±{CURVATURE_SIGMAS:g}σ of it: σ not backed by the data"
+            widened.append(f"{p.name} undetermined")
+            continue
+        factor = math.sqrt(needed / rise)
+        p.std_error *= factor
+        widened.append(f"{p.name} ×{factor:.3g}")
+    if widened:
+        text = (
+            f"σ checked on the cost (±{CURVATURE_SIGMAS:g}σ must raise the sum of squares by"
+            f" {CURVATURE_SIGMAS**2:g}·s²): {', '.join(widened)}"
+        )
+        notes.append(Note(JOINT, text, named=False))
 
 
 def _say_verdict(chosen: Choice, fair: list[str], notes: list[Note]) -> None:
