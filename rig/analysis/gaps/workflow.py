@@ -29,6 +29,12 @@ friction candidate, alone or in a pair, is rejected when its fitted model still 
 with |ω| while moving (Stribeck's signature explains `min_decay` or more of the motor residual beyond the
 level); and neither is tried without the other.
 
+Slow factors: `thermal_drift` (time since the run's start), `wear_drift` (motor travel since then) and
+`temperature_dependence` (the recorded gear temperature) all scale the motor friction slowly; each is
+scored by what it explains beyond the other two (`effects.slow_scores`), so runs at several temperatures
+and travels tell them apart; the best of them is always fitted. Replays start from the measured
+temperatures and travel (`shooting.started`, `residual._measured_states`).
+
 Effects at zero: a section the model carries with its strengths at zero (`effects.carried`: load friction
 with f_cl = f_sl = b_l = 0, Stribeck with f_st = 0, ...) does nothing yet, so its effect is a candidate
 like an absent one.
