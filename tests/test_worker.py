@@ -208,4 +208,5 @@ def test_each_run_on_a_rig_kept_open_has_its_own_clock_from_zero(store: RunStore
         t = store.read(job.id).t
         assert t[0] == pytest.approx(0.0, abs=period_s)  # the first sample is the run's t = 0
     # The rig's clock went on: the second run began where the first left it.
-    assert store.get(second.id)["meta"]["rig_time_origin_s"] >= len(store.read(first.id)) * period_s
+    # Half a period of slack: the origin is a sum of float periods, the bound a product.
+    assert store.get(second.id)["meta"]["rig_time_origin_s"] >= (len(store.read(first.id)) - 0.5) * period_s

@@ -74,16 +74,22 @@ def rig_speeds(speeds: list[float], info: ValidationInfo, at_least: int = 1) -> 
     return distinct_speeds(speeds, at_least)
 
 
+def speed_refusal(speed_rad_s: float, config: RigConfig, what: str = "speed") -> str | None:
+    """Why a motor speed is beyond the rig's velocity saturation (None: it is within)."""
+    limit = float(config.control.max_velocity_rad_s)
+    if abs(speed_rad_s) <= limit:
+        return None
+    return (
+        f"{what}: velocity set-point {speed_rad_s:g} rad/s beyond the rig's {limit:g} rad/s"
+        f" (rig {config.name!r}'s speed saturation)"
+    )
+
+
 def within_rig_speed(speed_rad_s: float, info: ValidationInfo, what: str = "speed") -> float:
     """Refuse a motor speed beyond the velocity saturation of the rig the plan is made for (if any)."""
     config = (info.context or {}).get(RIG_CONTEXT)
-    if config is not None:
-        limit = float(config.control.max_velocity_rad_s)
-        if abs(speed_rad_s) > limit:
-            raise ValueError(
-                f"{what}: velocity set-point {speed_rad_s:g} rad/s beyond the rig's {limit:g} rad/s"
-                f" (rig {config.name!r}'s speed saturation)"
-            )
+    if config is not None and (refusal := speed_refusal(speed_rad_s, config, what)) is not None:
+        raise ValueError(refusal)
     return speed_rad_s
 
 

@@ -35,6 +35,7 @@ from rig.experiments.base import (
     RigContext,
     rig_speeds,
     segments_of,
+    speed_refusal,
 )
 from rig.experiments.plots import new_figure, save_figure
 from rig.interface import ControlMode, Segment
@@ -161,6 +162,9 @@ def same_place_program(
     friction's dependence on position is the same in every speed's figure."""
     room_m = room_ahead_rad(params, ctx)
     speeds = sorted(params.speeds_rad_s, reverse=True)
+    # The rig's speed first: a pass's travel at a speed the drive cannot reach says nothing useful.
+    if (refusal := speed_refusal(speeds[0], ctx.config, f"{experiment}: speeds_rad_s")) is not None:
+        raise ProgramError(refusal)
     centre = sweep_centre(params, ctx)
     span_rad = 2 * (centre - ctx.theta_m0)
     if span_rad > room_m:
