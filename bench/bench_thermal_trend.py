@@ -36,7 +36,7 @@ from rig.analysis.identification.thermal_stage import identify_thermal, output_s
 from rig.config import load_rig_config  # noqa: E402
 from rig.core.trend import trend_document  # noqa: E402
 from rig.experiments.base import RigContext, context_from_run  # noqa: E402
-from rig.experiments.endurance import Endurance, EnduranceParams  # noqa: E402
+from rig.experiments.endurance import CHECKPOINT_PREFIX, Endurance, EnduranceParams  # noqa: E402
 from rig.experiments.warm_up import WarmUpParams, warm_up_checkpoints  # noqa: E402
 from rig.interface import ControlMode, Segment  # noqa: E402
 from rig.runner import run_experiment  # noqa: E402
@@ -57,17 +57,14 @@ class PausedEndurance(Endurance):
         rest = np.full(ctx.cycles(PAUSE_MIN * 60.0), ctx.theta_m0)
         rest.flags.writeable = False
         out: list[Segment] = []
+        previous = -1  # the checkpoint the last segment belonged to
         for seg in super().program(params, ctx):
-            first_of_checkpoint = seg.label.endswith(f"/{_first_label(params)}")
-            index = int(seg.label[1:5]) if first_of_checkpoint else 0
-            if first_of_checkpoint and index > 0 and index % PAUSE_EVERY == 0:
+            index = int(seg.label[1:5]) if seg.label.startswith(CHECKPOINT_PREFIX) else previous
+            if index != previous and index > 0 and index % PAUSE_EVERY == 0:
                 out.append(Segment(ControlMode.POSITION, rest, 0.0, f"rest{index:04d}"))
+            previous = index
             out.append(seg)
         return out
-
-
-def _first_label(params: EnduranceParams) -> str:
-    return f"v{params.speeds_rad_s[0]:+g}"
 
 
 def plant() -> HarmonicDriveModel:
