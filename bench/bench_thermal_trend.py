@@ -162,7 +162,9 @@ def endurance(store: RunStore, fitted: HarmonicDriveModel) -> None:
     wall = time.perf_counter() - start
     print(f"\n## 10 h endurance with wear and pauses ({outcome.status.value}, {wall:.0f} s wall)\n")
     assert fitted.thermal is not None
-    document = trend_document(store, run_id=outcome.run_id, law=fitted.thermal)
+    # As `hdrig trend --model <fitted>` does: the fitted model's output share left as measured.
+    share = output_share_nm(fitted, 0.0)
+    document = trend_document(store, run_id=outcome.run_id, law=fitted.thermal, unscaled_nm=share)
     points = document.points
     s = np.array([p.travel_rad for p in points])
     temps = np.array([p.temp_gear_c or math.nan for p in points])
@@ -170,24 +172,22 @@ def endurance(store: RunStore, fitted: HarmonicDriveModel) -> None:
     raw_sigma = np.array([p.coulomb_sigma for p in points])
     norm = np.array([p.coulomb_normalized_estimate or math.nan for p in points])
     norm_sigma = np.array([p.coulomb_normalized_sigma or math.nan for p in points])
-    share = output_share_nm(model, 0.0)
     law = fitted.thermal
-    # The output share is neither warmed nor worn: normalize the rest only, for the wear fit.
-    factor = np.exp(law.beta_T * (temps - law.T_ref))
-    norm_share = (raw - share) * factor + share
+    # For comparison: the whole F_c scaled by the law (the output share warmed too).
+    whole = raw * np.exp(law.beta_T * (temps - law.T_ref))
     print(
         f"checkpoints: {len(points)}; gear {np.nanmin(temps):.1f}–{np.nanmax(temps):.1f} °C; travel"
         f" {s[-1]:.3g} rad; raw F_c {raw[0]:.4f} → {raw[-1]:.4f} N·m,"
-        f" normalized {norm[0]:.4f} → {norm[-1]:.4f}"
+        f" normalized {norm[0]:.4f} → {norm[-1]:.4f}; output share {share:.4g} N·m"
     )
     print("\n| wear drift k_wear [1/rad] from | estimate ± σ | against the plant's 2.8e-7 |")
     print("|---|---|---|")
-    for what, f, sig in (
-        ("raw trend", raw, raw_sigma),
-        ("normalized trend (whole F_c)", norm, norm_sigma),
-        ("normalized trend (output share kept out)", norm_share, norm_sigma),
+    for what, f, u in (
+        ("raw trend", raw, 0.0),
+        ("whole F_c normalized (u = 0)", whole, 0.0),
+        ("`hdrig trend --model`: normalized, output share as measured", norm, share),
     ):
-        k, k_sigma = wear_fit(s, f, sig, share if "share" in what else 0.0)
+        k, k_sigma = wear_fit(s, f, raw_sigma if f is raw else norm_sigma, u)
         off = f"{(k - K_WEAR) / k_sigma:+.1f} σ ({100 * (k / K_WEAR - 1):+.1f} %)"
         print(f"| {what} | {k:.3g} ± {k_sigma:.2g} | {off} |")
 

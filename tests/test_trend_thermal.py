@@ -78,3 +78,15 @@ def test_a_model_without_a_thermal_section_is_refused(endurance: tuple[RunStore,
     store, run_id = endurance
     with pytest.raises(UserInputError, match="no thermal section"):
         actions.trend(store, run_id=run_id, model="seed")
+
+
+def test_the_output_share_is_left_as_measured() -> None:
+    """The law scales the motor friction only (docs/MODEL.md): with u, the output side's share seen at the
+    motor, a level measured warm comes back to the motor part at T_ref plus u, not u warmed as well."""
+    law = load_model(PLANT).thermal
+    assert law is not None
+    motor_at_ref, share = 0.05, 0.02
+    for temp in (10.0, 25.0, 40.0):
+        measured = motor_at_ref * math.exp(-law.beta_T * (temp - law.T_ref)) + share
+        value, _ = normalized_friction(measured, 0.001, temp, law, unscaled_nm=share)
+        assert value == pytest.approx(motor_at_ref + share, rel=1e-12)

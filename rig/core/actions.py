@@ -679,12 +679,17 @@ def trend(
     """`hdrig trend`: the checkpoints of an endurance run, or of every run of a gear unit, against time
     and duty cycles, with the online tracker's level; `plot_dir` also gets the plots. `model`: a model
     file (or preset) whose `thermal` law brings each checkpoint's friction to its T_ref (issue 27)."""
-    law = None
+    law, unscaled_nm = None, 0.0
     if model is not None:
-        law = load_model(model).thermal
+        from rig.analysis.identification.thermal_stage import output_share_nm
+
+        gear = load_model(model)
+        law = gear.thermal
         if law is None:
             raise UserInputError(f"trend: model {model!r} has no thermal section (fit one from warm-up runs)")
-    document = trend_document(store, run_id=run_id, unit=unit, law=law)
+        # The output side's share of F_c is neither warmed nor worn by the law: left as measured.
+        unscaled_nm = output_share_nm(gear, 0.0)
+    document = trend_document(store, run_id=run_id, unit=unit, law=law, unscaled_nm=unscaled_nm)
     if plot_dir is not None:
         document.plots = [str(p) for p in plot_trend(document, Path(plot_dir))]
     return document

@@ -25,20 +25,27 @@ _ESTIMATES = ("coulomb", "viscous", "stiffness")
 
 
 def normalized_friction(
-    coulomb_nm: float, sigma_nm: float, temp_gear_c: float, law: Thermal
+    coulomb_nm: float, sigma_nm: float, temp_gear_c: float, law: Thermal, unscaled_nm: float = 0.0
 ) -> tuple[float, float]:
     """A friction level measured at the gear temperature `temp_gear_c`, brought to the law's T_ref, with
-    its σ scaled alike: F·exp(beta_T·(T_g − T_ref)) [N·m]."""
+    its σ scaled alike: (F − u)·exp(beta_T·(T_g − T_ref)) + u [N·m]. `unscaled_nm` (u): the share of F
+    the law does not scale, the output side's friction seen at the motor (docs/MODEL.md: the law is the
+    motor friction's)."""
     factor = math.exp(law.beta_T * (temp_gear_c - law.T_ref))
-    return coulomb_nm * factor, sigma_nm * factor
+    return (coulomb_nm - unscaled_nm) * factor + unscaled_nm, sigma_nm * factor
 
 
 def trend_document(
-    store: RunStore, run_id: str | None = None, unit: str | None = None, law: Thermal | None = None
+    store: RunStore,
+    run_id: str | None = None,
+    unit: str | None = None,
+    law: Thermal | None = None,
+    unscaled_nm: float = 0.0,
 ) -> TrendDocument:
     """The checkpoints of one run (`run_id`) or of every run of a gear `unit`, oldest first; time is
     counted from the first run's start, so runs of one unit line up on one axis. With `law` (a model's
-    thermal section) each checkpoint with a gear temperature also gets its friction at the law's T_ref."""
+    thermal section) each checkpoint with a gear temperature also gets its friction at the law's T_ref,
+    `unscaled_nm` of it left as measured (`normalized_friction`)."""
     if (run_id is None) == (unit is None):
         raise UserInputError("trend: name one run (RUN) or one gear unit (--unit SERIAL)")
     rows = store.checkpoints(run_id=run_id, unit=unit)
@@ -65,7 +72,11 @@ def trend_document(
             thermal["temp_gear_c"] = float(row["temp_gear_c"])
             if law is not None:
                 value, sigma = normalized_friction(
-                    float(row["coulomb_nm"]), float(row["coulomb_sigma_nm"]), thermal["temp_gear_c"], law
+                    float(row["coulomb_nm"]),
+                    float(row["coulomb_sigma_nm"]),
+                    thermal["temp_gear_c"],
+                    law,
+                    unscaled_nm,
                 )
                 thermal |= {"coulomb_normalized_estimate": value, "coulomb_normalized_sigma": sigma}
         points.append(
