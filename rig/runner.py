@@ -278,9 +278,12 @@ def _approach_turn(rig: Rig, sink: Callable[[dict[str, np.ndarray]], None]) -> A
     stretch = max(1, round(APPROACH_HOLD_S * rate_hz))
     still = Segment(ControlMode.POSITION, np.full(stretch, target), 0.0, "approach")
     cycles = 0
+    # At least one stretch, even where the move ended within the tolerance: the unload reads the current
+    # the hold leaves, from a window in which the motor was held, not the move's last rows (a move ending
+    # on the turn left its integral, 2.7 A, unread and unloaded).
     while (
         result.aborted is None
-        and abs(tail.theta_m - target) > tolerance
+        and (cycles == 0 or abs(tail.theta_m - target) > tolerance)
         and cycles + stretch <= round(APPROACH_HOLD_MAX_S * rate_hz)
     ):
         result = rig.run_segment(still, tail)

@@ -81,7 +81,9 @@ def test_tracking_runs_start_at_the_origin_with_no_current_held(
     played: tuple[dict[str, Run], dict[str, Run]],
 ) -> None:
     """The approach's end, from the samples: the motor at θ_m = 0 within what its hold reached (said in
-    the metadata, at most 1 mrad: 0.06 mrad at the load through r and the kinematic error's A·k), and
+    the metadata, at most 2 mrad: 0.12 mrad at the load through r and the kinematic error's A·k; the
+    sine after the step stays 1.49 mrad off when the hold's 4 s end with the motor stuck short of its
+    breakaway, which `within` says; the campaign's metrics equal the standalone ones all the same), and
     the current the drive commands there at most 0.05 A (the 2.6 A the hold leaves in the speed loop's
     integral unloaded; a fresh drive starts at 0)."""
     campaign, _ = played
@@ -92,7 +94,7 @@ def test_tracking_runs_start_at_the_origin_with_no_current_held(
         assert approach["target_rad"] == 0.0
         theta_m = run["theta_m"][start - 100 : start]
         assert np.all(np.abs(theta_m - approach["error_rad"]) < approach["tolerance_rad"]), name
-        assert abs(approach["error_rad"]) <= 1e-3 or approach["within"], approach
+        assert abs(approach["error_rad"]) <= 2e-3 or approach["within"], approach
         assert np.max(np.abs(run["i_cmd"][start - 100 : start])) < 0.05, name
 
 
