@@ -6,7 +6,8 @@ Reads only the catalog (table `checkpoints`) and each run's metadata (`observed`
 Warm-up and wear (issue 27 item 6): friction falls as the gear's grease warms and rises as the gear wears,
 so a raw trend mixes the two. Given the friction's temperature law (a model's `thermal` section: friction
 × exp(−beta_T·(T_g − T_ref)), identified from `warm-up` runs), each checkpoint that recorded the gear's
-temperature is also brought to T_ref: F_c·exp(beta_T·(T_g − T_ref)), shown beside the raw F_c.
+temperature is also brought to T_ref: (F_c − u)·exp(beta_T·(T_g − T_ref)) + u, shown beside the raw F_c,
+u the share the law does not scale (the output side's friction seen at the motor).
 """
 
 from __future__ import annotations
