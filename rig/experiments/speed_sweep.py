@@ -10,8 +10,8 @@ windows also span several periods of the output's barely damped mode (its inerti
 does not average out of a window shorter than that); passes start and stop in slow raised-cosine ramps
 that leave that mode nearly still. Windows where the output stuck or ran back against the motor (the
 kinematic error at low speed) are reported and left out of the Coulomb/viscous line.
-(`sweep_program` and `friction_table` are the plain constant-speed passes from where the motor is, at
-other places for each speed: the load variation and the endurance checkpoints use them.)
+(`friction_table` is the plain mean over each constant-speed pass, whatever its place: the identification
+reads the sweeps' windows with it, its model evaluated at every instant of them.)
 """
 
 from __future__ import annotations
@@ -265,11 +265,12 @@ def friction_at_centre(
     return float(coef[0]), None
 
 
-def _ripple(windows: list[tuple[float, float, np.ndarray | None]]) -> np.ndarray | None:
-    """The per-turn ripple of the friction as it opposes forward motion: the harmonics of the slowest
-    whole-turn windows, each times its direction (the position-dependent friction turns with the motion's
-    sign), averaged. The slowest, because their harmonics lie farthest below the output's mode."""
-    whole = [(abs(speed), np.sign(speed) * coef) for speed, _, coef in windows if coef is not None]
+def _ripple(windows: list[tuple[float, np.ndarray | None]]) -> np.ndarray | None:
+    """The per-turn ripple of the friction as it opposes forward motion, from (set speed, harmonics) of
+    the whole-turn windows: the slowest ones' harmonics, each times its direction (the position-dependent
+    friction turns with the motion's sign), averaged. The slowest, because their harmonics lie farthest
+    below the output's mode."""
+    whole = [(abs(speed), np.sign(speed) * coef) for speed, coef in windows if coef is not None]
     if not whole:
         return None
     slowest = min(speed for speed, _ in whole)
@@ -300,31 +301,35 @@ def same_place_table(
     names = ("omega_set", "omega_m", "torque_nm", "torque_mean_nm", "torque_std", "theta_m", "turns")
     rows_of: dict[str, list[float]] = {k: [] for k in (*names, "load_steady")}
     skip = ctx.cycles(params.settle_s)
+    room_rad = room_ahead_rad(params, ctx)
     passes = []
     for seg in segments_of(run, prefix + "v"):
         if not _is_pass(str(seg["label"]), prefix):
             continue  # another segment under the prefix (an endurance checkpoint's loaded `v+5L`)
         set_speed = float(run["setpoint"][int(seg["start"])])
-        turns = window_turns(abs(set_speed), params, room_ahead_rad(params, ctx))
+        turns = window_turns(abs(set_speed), params, room_rad)
         rows = np.arange(int(seg["start"]) + skip, int(seg["start"]) + int(seg["cycles"]))
         rows = rows[np.abs(theta_m[rows] - centre) < turns * math.pi]
         if rows.size < 2 * (4 + 2 * FOURIER_HARMONICS):  # a pass cut short (an aborted run)
             continue
         passes.append((set_speed, turns, rows))
-    torque_of = {id(rows): torque[rows] for _, _, rows in passes}
-    whole = [
-        (speed, turns, friction_at_centre(theta_m[rows], torque_of[id(rows)], centre, turns)[1])
-        for speed, turns, rows in passes
+    # Whole-turn windows first: their figures, and the harmonics the windows under a turn take out.
+    whole = {
+        i: friction_at_centre(theta_m[rows], torque[rows], centre, turns)
+        for i, (_, turns, rows) in enumerate(passes)
         if turns >= 1.0
-    ]
-    ripple = _ripple(whole)
-    for set_speed, turns, rows in passes:
-        held = torque_of[id(rows)]
+    }
+    ripple = _ripple([(passes[i][0], coef) for i, (_, coef) in whole.items()])
+    for i, (set_speed, turns, rows) in enumerate(passes):
+        held = torque[rows]
         direction = np.sign(set_speed)
-        signed_ripple = direction * ripple if ripple is not None else None
+        if i in whole:
+            figure = whole[i][0]
+        else:
+            signed_ripple = direction * ripple if ripple is not None else None
+            figure, _ = friction_at_centre(theta_m[rows], held, centre, turns, signed_ripple)
         rows_of["omega_set"].append(set_speed)
         rows_of["omega_m"].append(float(np.mean(run["omega_m"][rows])))
-        figure, _ = friction_at_centre(theta_m[rows], held, centre, turns, signed_ripple)
         rows_of["torque_nm"].append(figure)
         rows_of["torque_mean_nm"].append(float(np.mean(held)))
         rows_of["torque_std"].append(float(np.std(held)))
@@ -333,31 +338,6 @@ def same_place_table(
         rows_of["load_steady"].append(float(_load_steady(run["theta_l"], rows, direction, ctx)))
     order = np.argsort(rows_of["omega_set"], kind="stable")
     return {name: np.asarray(values)[order] for name, values in rows_of.items()}
-
-
-def sweep_program(params: SpeedSweepParams, ctx: RigContext, prefix: str = "") -> list[Segment]:
-    """Forward/backward constant-speed passes for each speed; labels `<prefix>v+<speed>`/`v-<speed>`."""
-    limits = ctx.config.limits
-    room_m = (limits.travel_max_out_rad / ctx.gear_ratio - ctx.theta_m0) * params.travel_fraction
-    segments = []
-    for speed in params.speeds_rad_s:
-        duration = min(params.settle_s + params.hold_s, room_m / speed)
-        if duration <= params.settle_s:
-            raise ProgramError(
-                f"speed-sweep: at {speed} rad/s the stroke ahead ({room_m:.3g} rad motor) is too short"
-                f" to settle in settle_s = {params.settle_s} s"
-            )
-        cycles = ctx.cycles(duration)
-        for sign in (1.0, -1.0):
-            segments.append(
-                Segment(
-                    ControlMode.VELOCITY,
-                    np.full(cycles, sign * speed),
-                    params.tau_ext_nm,
-                    f"{prefix}v{sign * speed:+g}",
-                )
-            )
-    return segments
 
 
 def friction_table(run: Run, ctx: RigContext, settle_s: float, prefix: str = "") -> dict[str, np.ndarray]:
@@ -420,7 +400,8 @@ class SpeedSweep(Experiment):
         metrics.update(coulomb_viscous_fit({name: column[steady] for name, column in table.items()}))
         notes.append(
             f"friction at one place: each speed's smooth friction at θ_m = {metrics['centre_rad']:.4g} rad,"
-            " fitted over whole motor turns about it (more at high speed) beside the per-turn ripple;"
+            " fitted over whole motor turns about it (more at high speed) beside the per-turn ripple, or over"
+            " the part of a turn a slow speed covers with that ripple taken out;"
             " passes where the output stuck or ran back (its kinematic error at low speed) are left out of"
             " the Coulomb/viscous line"
         )
