@@ -10,6 +10,9 @@ prediction, so every effect the model carries is in it, with one copy of the phy
 Channels (each smoothed by `Signals.smooth`, the same filter as the regressors of `effects`):
 - `motor` [N·m at the motor]: J·(α_m measured − predicted), J = J_m + r²·J_l for a rigid model.
 - `load` [N·m at the output], compliant model with the output measured: J_l·(α_l measured − predicted).
+  With the output transducer (`signals.output_boundary`: tau_out in place of τ_ext) it is
+  tau_out + J_l·α_l − (T_s − F_l), the model's J_l the gear's own: the output's balance, without the
+  motor's friction or the load drive.
 - `load_position` [rad at the output], rigid model with the output measured: θ_l − (r·θ_m + θ_err).
 """
 

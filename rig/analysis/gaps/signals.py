@@ -42,7 +42,7 @@ class Signals:
     mode: InputMode
     t: np.ndarray  # s, from the run's first sample
     drive: np.ndarray  # u [V], i_cmd [A] or tau_m [N·m] by mode
-    tau_ext: np.ndarray  # N·m at the output
+    tau_ext: np.ndarray  # N·m at the output: the torque beyond the gear's output (`boundary`)
     theta_m: np.ndarray  # rad, as measured
     omega_m: np.ndarray  # rad/s, smoothed derivative of theta_m
     theta_l: np.ndarray | None  # rad, as measured (None: no output sensor)
@@ -53,6 +53,7 @@ class Signals:
     temp_gear: np.ndarray | None = None  # °C, measured, averaged over TEMPERATURE_S (None: not recorded)
     temp_motor: np.ndarray | None = None  # °C, likewise
     travel: np.ndarray = field(default_factory=lambda: np.zeros(0))  # ∫|ω_m|dt since the start [rad]
+    boundary: str = "tau_ext"  # the column `tau_ext` holds: the load's torque, or the output transducer's
 
     @property
     def n(self) -> int:
@@ -91,6 +92,22 @@ def _temperature(run: Run, column: str, samples: int) -> np.ndarray | None:
     return np.asarray(convolve1d(values, np.full(width, 1.0 / width), mode="nearest"))
 
 
+OUTPUT_TRANSDUCER = "tau_out"
+
+
+def output_boundary(run: Run) -> str:
+    """The column whose torque stands at the gear's output: the output transducer's where the run has it.
+
+    `tau_out` reads what the gear passes on (T_s − F_l less what accelerates the gear's own output
+    inertia), so with it as the torque beyond the output the gear's model is judged alone, cut at the
+    transducer: the output's residual and the replays need neither the load drive (its rotor's inertia,
+    its bearings' friction, which its `tau_ext` column lacks) nor the motor's friction, and an effect at
+    the output shows in the output's channel directly (docs/CATALOG_TESTS.md, "The bench")."""
+    if OUTPUT_TRANSDUCER in run and np.all(np.isfinite(run[OUTPUT_TRANSDUCER])):
+        return OUTPUT_TRANSDUCER
+    return "tau_ext"
+
+
 def prepare(run: Run, stick_band_rad_s: float, smoothing_s: float = SMOOTHING_S) -> Signals:
     """Signals of one validated run; an error naming the column if it cannot drive a replay."""
     mode = replay_mode(run)
@@ -109,7 +126,8 @@ def prepare(run: Run, stick_band_rad_s: float, smoothing_s: float = SMOOTHING_S)
 
     theta_m = np.asarray(run["theta_m"], dtype=np.float64)
     theta_l = np.asarray(run["theta_l"], dtype=np.float64) if "theta_l" in run else None
-    tau = np.asarray(run["tau_ext"], dtype=np.float64) if "tau_ext" in run else np.zeros(n)
+    boundary = output_boundary(run)
+    tau = np.asarray(run[boundary], dtype=np.float64) if boundary in run else np.zeros(n)
     sig = Signals(
         run=run,
         mode=mode,
@@ -122,6 +140,7 @@ def prepare(run: Run, stick_band_rad_s: float, smoothing_s: float = SMOOTHING_S)
         theta_l_smooth=None if theta_l is None else np.asarray(savgol_filter(theta_l, sg, 3, mode="interp")),
         omega_l=None if theta_l is None else derivative(theta_l),
         width=width,
+        boundary=boundary,
     )
     sig.temp_gear, sig.temp_motor = (_temperature(run, c, round(TEMPERATURE_S / h)) for c in TEMPERATURES)
     steps = np.abs(np.diff(theta_m))

@@ -35,6 +35,11 @@ scored by what it explains beyond the other two (`effects.slow_scores`), so runs
 and travels tell them apart; the best of them is always fitted. Replays start from the measured
 temperatures and travel (`shooting.started`, `residual._measured_states`).
 
+Output transducer: a run with `tau_out` (a dynamometer bench) has the gear cut at the transducer: tau_out
+is the torque beyond the output (`signals.output_boundary`), so the load channel is the output's own
+balance, tau_out + J_l·α_l − (T_s − F_l), without the motor's friction or the load drive, and an effect
+at the output (load friction hidden) is found there.
+
 Effects at zero: a section the model carries with its strengths at zero (`effects.carried`: load friction
 with f_cl = f_sl = b_l = 0, Stribeck with f_st = 0, ...) does nothing yet, so its effect is a candidate
 like an absent one.
@@ -505,6 +510,12 @@ def find_gaps(
     left = signature(final_ctx)
     rejected = [t.line(gap_test) for t in trials]
     verdict = _verdict(steps, initial, gap_all, rejected, left)
+    cut = sorted({s.boundary for s in signals} - {"tau_ext"})
+    if cut:
+        verdict += (
+            f"; the gear was judged cut at its output transducer ({', '.join(cut)} as the output's torque:"
+            " the output's residual needs no motor friction and no load drive)"
+        )
     if steps:
         added = ", ".join(s.effect for s in steps)
         current = current.with_updates(

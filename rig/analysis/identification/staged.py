@@ -18,6 +18,12 @@ believes or holds each value:
    against velocity (sweep windows: s3, k_v, or the baseline law's levels).
 4. breakaway (every run's sticks): static_factor.
 
+On a dynamometer bench (runs with the torque transducers' `tau_out`, `tau_in`: `transducer_stage`) the
+stiffness stage solves the output equation, mean T_s − F_l = tau_out + J_l·Δω_l/T, in place of the load
+drive's τ_ext (no motor friction, no load drive in it), the velocity stage reads r·tau_out in place of
+r·τ_ext, and the motor law from tau_in (no K_m, no J_m) is a check beside the current's; the notes name
+each value's source.
+
 What the data cannot determine is said, and held at its starting value: v_c (C·(1 + k_v(|ω| − v_c)) =
 C·(1 − k_v·v_c) + C·k_v·|ω|: s3 and k_v absorb it), a0 (a constant like s3: fixed at 0), b_m (∝ ω like
 C·k_v), K_m and r (given), f_sl, and whatever a stage had no run for. Everything else whose standard
@@ -61,6 +67,14 @@ from rig.analysis.identification.friction_stage import (
     velocity_names,
 )
 from rig.analysis.identification.pipeline import Note, Stage, note_lines
+from rig.analysis.identification.transducer_stage import (
+    INPUT,
+    OUTPUT,
+    input_equation,
+    output_equation,
+    output_run,
+    with_transducer,
+)
 
 ROUNDS = 2
 """Passes over the coupled stages (mechanics; position ↔ velocity friction): the second settles them."""
@@ -227,8 +241,15 @@ class StiffnessAndLoadFriction:
         return [] if model.rigid else stiffness_names(model)
 
     def run(self, runs: Sequence[Run], book: Book) -> None:
+        names = stiffness_names(book.model) + load_friction_names(book.model)
+        if with_transducer(runs, OUTPUT):
+            # The output transducer reads what the gear passes on: no load drive, no motor in the balance.
+            stiff = output_equation(runs, book.model)
+            book.accept(self.name, stiff, names)
+            _say_source(book, self.name, names, f"{OUTPUT} (output transducer)")
+            return
         stiff = stiffness_and_load_friction(sweep_parts(runs, book.model), book.model)
-        book.accept(self.name, stiff, stiffness_names(book.model) + load_friction_names(book.model))
+        book.accept(self.name, stiff, names)
 
 
 class FrequencyResponse:
@@ -303,9 +324,17 @@ class VelocityFriction:
         return velocity_names(model)
 
     def run(self, runs: Sequence[Run], book: Book) -> None:
-        velocity = velocity_friction(sweep_parts(runs, book.model), book.model, book.joint.get(POSITION))
+        held = book.joint.get(POSITION)
+        bench = {id(run) for run in with_transducer(runs, OUTPUT)}
+        # On a bench the load drive's τ_ext lacks its bearings' friction: r·tau_out takes its place.
+        sweeps = [output_run(run) if id(run) in bench else run for run in runs]
+        velocity = velocity_friction(sweep_parts(sweeps, book.model), book.model, held)
         scales = {"f_dir": RELATIVE_SCALE * abs(book.value("s3"))} if book.model.direction_asymmetry else {}
         book.accept(self.name, velocity, velocity_names(book.model), scales)
+        if bench:
+            _say_source(book, self.name, velocity_names(book.model), f"K_m·i_a − r·{OUTPUT}")
+        if with_transducer(runs, INPUT) and velocity.values:
+            _input_check(book, self.name, velocity, input_equation(runs, book.model, held))
         if "asymmetry_nm" in velocity.metrics and book.model.direction_asymmetry is None:
             book.notes[self.name].append(
                 Note(
@@ -336,6 +365,40 @@ class Breakaway:
         stiff = book.answers.get(STIFFNESS)
         offset = stiff.metrics.get("theta_l_offset", 0.0) if stiff is not None else 0.0
         book.accept(self.name, breakaway(runs, book.model, offset), ["static_factor", "f_sm"])
+
+
+def _say_source(book: Book, stage: str, names: list[str], source: str) -> None:
+    """Name the source of the stage's believed values in its notes."""
+    believed = [name for name in names if (e := book.estimates.get(name)) is not None and e.identifiable]
+    if believed and book.estimates[believed[0]].stage == stage:
+        book.notes[stage].insert(0, Note(stage, f"{', '.join(believed)} from {source}"))
+
+
+INPUT_AGREEMENT_SIGMAS = 3.0
+"""The input transducer's motor friction and the current's disagree when further apart than this many
+standard errors of their difference: then K_m (the rig's, given) or J_m is suspect."""
+
+
+def _input_check(book: Book, stage: str, current: Solved, transducer: Solved) -> None:
+    """The motor law from tau_in beside the current's: a check of K_m and J_m, not the estimate (on the
+    simulated bench the transducer's noise leaves its σ ~100× the current's; docs/IDENTIFICATION.md)."""
+    notes = book.notes.setdefault(stage, [])
+    notes += [Note(stage, note) for note in transducer.notes]
+    for name, value in transducer.values.items():
+        if name not in current.values:
+            continue
+        se = math.hypot(transducer.std_errors[name], current.std_errors[name])
+        z = (value - current.values[name]) / se if se > 0 and math.isfinite(se) else math.nan
+        verdict = (
+            "agrees" if abs(z) <= INPUT_AGREEMENT_SIGMAS else "DISAGREES: K_m (the rig's) or J_m is suspect"
+        )
+        notes.append(
+            Note(
+                stage,
+                f"{name} from {INPUT}: {value:.5g} ± {transducer.std_errors[name]:.2g} against"
+                f" {current.values[name]:.5g} from the current ({z:+.1f}σ): {verdict}",
+            )
+        )
 
 
 @dataclass(frozen=True)
