@@ -72,10 +72,15 @@ class CrcError(FrameError):
 # --- COBS (Cheshire & Baker 1999): no zero inside a frame, so 0x00 ends every frame ------------------
 
 
+_CODE = [bytes((code,)) for code in range(256)]
+
+
 def cobs_encode(data: bytes) -> bytes:
     """COBS-encode `data` (without the 0x00 delimiter)."""
-    out = bytearray()
     blocks = data.split(b"\x00")
+    if max(map(len, blocks)) < 254:  # the usual frame: one join (the twin encodes one every 2 ms)
+        return b"".join([part for block in blocks for part in (_CODE[len(block) + 1], block)])
+    out = bytearray()
     last = len(blocks) - 1
     for i, block in enumerate(blocks):
         while len(block) >= 254:
@@ -144,8 +149,20 @@ def encode_data_frame(seq: int, t0_us: int, period_us: int, samples: np.ndarray)
     if not 1 <= n <= MAX_SAMPLES_PER_FRAME:
         raise ValueError(f"a frame holds 1..{MAX_SAMPLES_PER_FRAME} samples, not {n}")
     kind = FRAME_ANALOG if samples.dtype == ANALOG_SAMPLE_DTYPE else FRAME_DATA
-    header = DATA_HEADER.pack(kind, VERSION, seq % SEQ_MODULUS, t0_us, period_us, n)
-    return _seal(header + np.ascontiguousarray(samples, dtype=_DTYPE_OF[kind]).tobytes())
+    return encode_packed_frame(
+        seq, t0_us, period_us, n, np.ascontiguousarray(samples, _DTYPE_OF[kind]).tobytes()
+    )
+
+
+def encode_packed_frame(seq: int, t0_us: int, period_us: int, n: int, packed: bytes) -> bytes:
+    """`encode_data_frame` of `n` samples already packed as SAMPLE_DTYPE's or ANALOG_SAMPLE_DTYPE's bytes
+    (which one: from their length), 0x00 delimiter included."""
+    if not 1 <= n <= MAX_SAMPLES_PER_FRAME:
+        raise ValueError(f"a frame holds 1..{MAX_SAMPLES_PER_FRAME} samples, not {n}")
+    kind = FRAME_ANALOG if len(packed) == n * ANALOG_SAMPLE_DTYPE.itemsize else FRAME_DATA
+    if len(packed) != n * _DTYPE_OF[kind].itemsize:
+        raise ValueError(f"{len(packed)} bytes are not {n} packed samples")
+    return _seal(DATA_HEADER.pack(kind, VERSION, seq % SEQ_MODULUS, t0_us, period_us, n) + packed)
 
 
 def encode_reply_frame(tag: int, text: str) -> bytes:

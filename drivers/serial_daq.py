@@ -37,7 +37,6 @@ from drivers.daq_protocol import (
     ANALOG_SAMPLE_DTYPE,
     ERR_BAD_ARGUMENT,
     MAX_TAG,
-    SAMPLE_DTYPE,
     DataFrame,
     DecoderStats,
     FrameDecoder,
@@ -247,10 +246,11 @@ class SerialDaq:
         self._encoder_count = 0  # its unwrapped value
         self._tag = 0
         self._command_lock = threading.RLock()  # one command (or clock comparison) at a time
-        self._take_lock = threading.Lock()  # one taker of samples at a time: the encoder unwrapping
+        self._take_lock = threading.Lock()  # one taker of samples at a time
         # What the reader thread hands over, guarded by _decoded:
         self._decoded = threading.Condition()
-        self._frames: list[DataFrame] = []
+        self._columns = _DecodedColumns()
+        self._newest_t_device_s: float | None = None  # the newest sample's device time not yet taken
         self._pending_samples = 0
         self._replies: list[tuple[ReplyFrame, float]] = []  # with the host time of arrival
         self._failure: str | None = None
@@ -287,7 +287,7 @@ class SerialDaq:
     def zero_encoder(self) -> None:
         """`ZERO`: the encoder count is 0 at the present position."""
         self.command("ZERO")
-        with self._take_lock:
+        with self._decoded:
             self._encoder_raw = None
 
     def device_time_s(self) -> float:
@@ -366,11 +366,9 @@ class SerialDaq:
         """All samples decoded so far, waiting until one taken at or after host time `t_host_s` is in."""
 
         def short() -> bool:
-            if not self._frames:
+            if self._newest_t_device_s is None:
                 return True
-            last = self._frames[-1]
-            t_last = (last.t0_us + (len(last.samples) - 1) * last.period_us) * 1e-6
-            return float(self.host_time_s(t_last)) < t_host_s
+            return float(self.host_time_s(self._newest_t_device_s)) < t_host_s
 
         return self._read(short, timeout_s, f"a sample at host time {t_host_s:.6f} s")
 
@@ -433,9 +431,9 @@ class SerialDaq:
     def _read(self, short: Callable[[], bool], timeout_s: float | None, what: str) -> SampleBlock:
         timeout = self.timeout_s if timeout_s is None else timeout_s
         with self._take_lock:
-            return self._samples(self._wait_frames(short, timeout, what))
+            return self._block(self._wait_samples(short, timeout, what))
 
-    def _wait_frames(self, short: Callable[[], bool], timeout: float, what: str) -> list[DataFrame]:
+    def _wait_samples(self, short: Callable[[], bool], timeout: float, what: str) -> _Taken:
         with self._decoded:
             if not self._decoded.wait_for(lambda: not short() or self._failure is not None, timeout):
                 stats = self.decoder.stats
@@ -445,58 +443,45 @@ class SerialDaq:
                 )
             if short():
                 raise DaqError(f"DAQ on {self.url}: no {what}: {self._failure}")
-            frames, self._frames = self._frames, []
+            taken = self._columns.take()
             self._pending_samples = 0
-            return frames
+            self._newest_t_device_s = None
+            return taken
 
-    def _samples(self, frames: list[DataFrame]) -> SampleBlock:
-        if not frames:
-            none = np.empty(0)
-            return SampleBlock(
-                none, none, none, none, none.astype(np.uint32), none.astype(np.int64), none.astype(np.uint8)
+    def _block(self, taken: _Taken) -> SampleBlock:
+        """The samples taken, scaled; in device-time order (a late frame, read after its successors, goes
+        back to its place). The reader thread decoded them as they came: what is left is array-wide."""
+        t_device_s, counts, cap, status, seq, index, adc = taken
+        if len(index) > 1 and np.any(index[1:] < index[:-1]):
+            order = np.argsort(index, kind="stable")
+            t_device_s, counts, cap, status, seq, index = (
+                a[order] for a in (t_device_s, counts, cap, status, seq, index)
             )
-        # A late frame (its successors came first) goes back to its place: samples in device-time order.
-        frames = sorted(frames, key=lambda f: f.first_index)
-        counts = np.array([len(f.samples) for f in frames])
-        starts = np.cumsum(counts) - counts
-        within = np.arange(int(counts.sum())) - np.repeat(starts, counts)
-        t0_us = np.repeat(np.array([f.t0_us for f in frames], dtype=np.float64), counts)
-        period_us = np.repeat(np.array([f.period_us for f in frames], dtype=np.float64), counts)
-        t_device_s = (t0_us + within * period_us) * 1e-6
-        # Joined as bytes: numpy's concatenate of structured arrays promotes their fields in Python,
-        # which was most of this function's time.
-        analog = all(f.samples.dtype == ANALOG_SAMPLE_DTYPE for f in frames)
-        if not analog:  # a stream switched between reads: the readings common to both
-            for i, f in enumerate(frames):
-                if f.samples.dtype == ANALOG_SAMPLE_DTYPE:
-                    plain = np.empty(len(f.samples), SAMPLE_DTYPE)
-                    for name in SAMPLE_DTYPE.names or ():
-                        plain[name] = f.samples[name]
-                    frames[i] = replace(f, samples=plain)
-        dtype = ANALOG_SAMPLE_DTYPE if analog else SAMPLE_DTYPE
-        samples = np.frombuffer(b"".join([f.samples.tobytes() for f in frames]), dtype=dtype)
-        encoder = self._unwrap_encoder(samples["encoder"])
-        calibration = self.calibration()
+            adc = adc[order] if adc is not None else None
+        calibration = self.calibration() if len(index) else None
         return SampleBlock(
             t_device_s=t_device_s,
             t_host_s=self.host_time_s(t_device_s),
-            theta_m_rad=encoder * calibration.rad_per_encoder_count,
-            theta_l_rad=samples["cap"] * calibration.rad_per_cap_count,
-            seq=np.repeat(np.array([f.seq for f in frames], dtype=np.uint32), counts),
-            index=np.repeat(np.array([f.first_index for f in frames], dtype=np.int64), counts) + within,
-            status=samples["status"].copy(),
-            adc=samples["adc"].reshape(-1, ANALOG_CHANNELS).astype(np.float64) if analog else None,
+            theta_m_rad=counts * calibration.rad_per_encoder_count if calibration else counts.astype(float),
+            theta_l_rad=cap * calibration.rad_per_cap_count if calibration else cap.astype(float),
+            seq=seq,
+            index=index,
+            status=status,
+            adc=adc,
         )
 
-    def _unwrap_encoder(self, raw: np.ndarray) -> np.ndarray:
-        # The i32 count wraps (16384 turns at 17 bits); between two samples the motor turns far less.
-        raw64 = raw.astype(np.int64)
-        previous_raw = self._encoder_raw if self._encoder_raw is not None else int(raw64[0])
-        previous = self._encoder_count if self._encoder_raw is not None else int(raw64[0])
-        step = np.diff(raw64, prepend=previous_raw)
-        step = (step + 2**31) % 2**32 - 2**31
-        counts = previous + np.cumsum(step)
-        self._encoder_raw, self._encoder_count = int(raw64[-1]), int(counts[-1])
+    def _unwrap_encoder(self, raw: list[int]) -> list[int]:
+        """The frame's encoder counts, unwrapped past the i32 range (the count wraps every 16384 turns at
+        17 bits; between two samples the motor turns far less). In the order frames arrive: a late frame
+        is still within a few frames' motion of the one before it."""
+        previous_raw = self._encoder_raw if self._encoder_raw is not None else raw[0]
+        count = self._encoder_count if self._encoder_raw is not None else raw[0]
+        counts = []
+        for value in raw:
+            count += (value - previous_raw + 2**31) % 2**32 - 2**31
+            previous_raw = value
+            counts.append(count)
+        self._encoder_raw, self._encoder_count = previous_raw, count
         return counts
 
     # --- the reader thread ------------------------------------------------------------------------------
@@ -520,11 +505,86 @@ class SerialDaq:
             with self._decoded:
                 for frame in self.decoder.feed(data):
                     if isinstance(frame, DataFrame):
-                        self._frames.append(frame)
-                        self._pending_samples += len(frame.samples)
+                        self._add_frame(frame)
                     else:
                         self._replies.append((frame, arrival_s))
                 self._decoded.notify_all()
+
+    def _add_frame(self, frame: DataFrame) -> None:
+        """Decode a data frame as it arrives, in this thread: a taker (the 1 kHz loop, at a chunk's end)
+        finds arrays to slice, not frames to decode (figures: docs/BENCHMARKS.md, issue 26)."""
+        n = len(frame.samples)
+        self._columns.add(frame, self._unwrap_encoder(frame.samples["encoder"].tolist()))
+        self._pending_samples += n
+        t_last_s = (frame.t0_us + (n - 1) * frame.period_us) * 1e-6
+        if self._newest_t_device_s is None or t_last_s > self._newest_t_device_s:
+            self._newest_t_device_s = t_last_s
+
+
+_Taken = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]
+"""Device time [s], unwrapped encoder counts, capacitive counts, status, seq, index, ADC readings."""
+
+
+class _DecodedColumns:
+    """The samples the reader thread has decoded and no one has taken yet, one array per quantity, in the
+    order they arrived; grown by doubling, emptied by `take`."""
+
+    def __init__(self, capacity: int = 1024) -> None:
+        self.count = 0
+        self._allocate(capacity)
+
+    def _allocate(self, capacity: int) -> None:
+        self.t_device_s = np.empty(capacity)
+        self.counts = np.empty(capacity, np.int64)
+        self.cap = np.empty(capacity, np.int32)
+        self.status = np.empty(capacity, np.uint8)
+        self.seq = np.empty(capacity, np.uint32)
+        self.index = np.empty(capacity, np.int64)
+        self.adc = np.empty((capacity, ANALOG_CHANNELS), np.int32)
+        self.analog = np.empty(capacity, bool)
+
+    _NAMES = ("t_device_s", "counts", "cap", "status", "seq", "index", "adc", "analog")
+
+    def _grow(self, needed: int) -> None:
+        old = {name: getattr(self, name) for name in self._NAMES}
+        capacity = len(self.index)
+        while capacity < needed:
+            capacity *= 2
+        self._allocate(capacity)
+        for name in self._NAMES:
+            getattr(self, name)[: self.count] = old[name][: self.count]
+
+    def add(self, frame: DataFrame, counts: list[int]) -> None:
+        samples, n, i = frame.samples, len(frame.samples), self.count
+        if i + n > len(self.index):
+            self._grow(i + n)
+        end = i + n
+        self.t_device_s[i:end] = [(frame.t0_us + j * frame.period_us) * 1e-6 for j in range(n)]
+        self.counts[i:end] = counts
+        self.cap[i:end] = samples["cap"]
+        self.status[i:end] = samples["status"]
+        self.seq[i:end] = frame.seq
+        self.index[i:end] = range(frame.first_index, frame.first_index + n)
+        analog = samples.dtype == ANALOG_SAMPLE_DTYPE
+        if analog:
+            self.adc[i:end] = samples["adc"]
+        self.analog[i:end] = analog
+        self.count = end
+
+    def take(self) -> _Taken:
+        """Copies of what was added since the last take; the ADC readings (as floats) only where every
+        sample has them (a stream switched between reads: the readings common to both)."""
+        n, self.count = self.count, 0
+        adc = self.adc[:n].astype(np.float64) if n and self.analog[:n].all() else None
+        return (
+            self.t_device_s[:n].copy(),
+            self.counts[:n].copy(),
+            self.cap[:n].copy(),
+            self.status[:n].copy(),
+            self.seq[:n].copy(),
+            self.index[:n].copy(),
+            adc,
+        )
 
 
 def _fileno(port: SerialPort) -> int | None:

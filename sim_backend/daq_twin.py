@@ -29,18 +29,16 @@ import numpy as np
 
 from drivers.daq_protocol import (
     ANALOG_CHANNELS,
-    ANALOG_SAMPLE_DTYPE,
     ERR_BAD_ARGUMENT,
     ERR_BAD_LINE,
     ERR_STREAMING,
     ERR_UNKNOWN_COMMAND,
     MAX_LINE_BYTES,
-    SAMPLE_DTYPE,
     STATUS_CAP_RANGE,
     STATUS_OVERRUN,
     cobs_decode,
     cobs_encode,
-    encode_data_frame,
+    encode_packed_frame,
     encode_reply_frame,
     split_tag,
 )
@@ -135,6 +133,15 @@ class PlantStateSource:
             theta_m = [self._theta_m[i] for i in slots]
             theta_l = [self._theta_l[i] for i in slots]
         return np.array(theta_m).reshape(t_s.shape), np.array(theta_l).reshape(t_s.shape)
+
+    def at(self, t_s: list[float]) -> tuple[list[float], list[float]]:
+        """`self(t_s)` for a list of times, as lists: no arrays for a frame's few samples."""
+        with self._lock:
+            if not self._count:
+                x = self.plant.x
+                return [float(x[X.THETA_M])] * len(t_s), [float(x[X.THETA_L])] * len(t_s)
+            slots = [self._slot(t) for t in t_s]
+            return [self._theta_m[i] for i in slots], [self._theta_l[i] for i in slots]
 
     def _slot(self, t_s: float) -> int:
         """The ring slot of the last state recorded at or before `t_s`; before the oldest state kept, the
@@ -535,7 +542,19 @@ class DaqTwin:
 
     def _source_at(self, t_device_s: list[float]) -> tuple[list[float], list[float]]:
         """The source's (θ_m, θ_l) at device times, as plain floats (a frame's few samples cost less so)."""
-        times = t_device_s if self._source_clock == "device" else [self.host_time_s(t) for t in t_device_s]
+        return self._source_at_own(self._source_times(t_device_s))
+
+    def _source_times(self, t_device_s: list[float]) -> list[float]:
+        """Device times on the clock the source is asked at."""
+        if self._source_clock == "device":
+            return t_device_s
+        host0, device0, rate = self._host0_s, self._device0_s, self._rate_factor
+        return [host0 + (t - device0) / rate for t in t_device_s]  # host_time_s, unrolled
+
+    def _source_at_own(self, times: list[float]) -> tuple[list[float], list[float]]:
+        """The source's (θ_m, θ_l) at times on its own clock."""
+        if isinstance(self.source, PlantStateSource):
+            return self.source.at(times)
         theta_m, theta_l = self.source(np.array(times))
         return np.asarray(theta_m).tolist(), np.asarray(theta_l).tolist()
 
@@ -575,22 +594,25 @@ class DaqTwin:
         # the cost, paid on the CPU that the 1 kHz loop waits for.
         n, period = self.samples_per_frame, self.period_us
         t0_us = self._first_us + seq * n * period
-        times = [(t0_us + j * period) * 1e-6 for j in range(n)]
-        theta_m, theta_l = self._source_at(times)
+        times = self._source_times([(t0_us + j * period) * 1e-6 for j in range(n)])
+        theta_m, theta_l = self._source_at_own(times)
         adc: list[list[int]] | None = None
         if self.analog:
-            source_times = times if self._source_clock == "device" else [self.host_time_s(t) for t in times]
-            readings = self.analog_source(source_times) if self.analog_source is not None else None
+            readings = self.analog_source(times) if self.analog_source is not None else None
             adc = [
                 [_adc_count(r) for r in readings[j]] if readings is not None else [0] * ANALOG_CHANNELS
                 for j in range(n)
             ]
         noise = self._rng.standard_normal(n).tolist()
         cap_per_rad = self.lever_radius_m * 1e6 / self.cap_um_per_count
+        counts_per_rad = self.encoder_counts_per_rev / (2 * math.pi)
+        load_noise, zero = self.load_noise_rad, self._zero_counts
         packed = bytearray()
         for j in range(n):
-            counts = self._raw_counts(theta_m[j]) - self._zero_counts
-            cap = (theta_l[j] + self.load_noise_rad * noise[j]) * cap_per_rad
+            if not math.isfinite(theta_m[j]):
+                raise ValueError(f"DAQ twin: the source's θ_m is {theta_m[j]}: no encoder count for it")
+            counts = math.floor(theta_m[j] * counts_per_rad + 0.5) - zero  # _raw_counts, unrolled
+            cap = (theta_l[j] + load_noise * noise[j]) * cap_per_rad
             if math.isnan(cap):
                 raise ValueError(f"DAQ twin: the source's θ_l is {theta_l[j]}: no capacitive reading for it")
             cap = round(cap) if math.isfinite(cap) else cap  # to nearest, ties to even (as np.rint)
@@ -604,8 +626,7 @@ class DaqTwin:
             else:
                 packed += _ANALOG_SAMPLE.pack(encoder, cap_count, status, *adc[j])
         self._overrun = False
-        samples = np.frombuffer(packed, SAMPLE_DTYPE if adc is None else ANALOG_SAMPLE_DTYPE)
-        frame = encode_data_frame(seq, t0_us, period, samples)
+        frame = encode_packed_frame(seq, t0_us, period, n, bytes(packed))
         while not self._line_events.empty():
             event = self._line_events.get()
             if event is None:
@@ -620,26 +641,25 @@ class DaqTwin:
 def _adc_count(reading: float) -> int:
     """A reading as the board's i32 converter gives it: to the nearest count, clipped (NaN: the
     lowest count, as an open input reads)."""
-    if math.isnan(reading):
-        return -_I32
-    return (
-        int(min(max(round(reading), -_I32), _I32 - 1))
-        if math.isfinite(reading)
-        else (_I32 - 1 if reading > 0 else -_I32)
-    )
+    try:
+        count = round(reading)  # to nearest, ties to even
+    except (ValueError, OverflowError):  # NaN, ±inf
+        return _I32 - 1 if reading > 0 else -_I32
+    return -_I32 if count < -_I32 else (_I32 - 1 if count >= _I32 else count)
 
 
 def analog_readings(source: PlantStateSource, channels: Mapping[str, AnalogChannel]) -> AnalogSource:
     """The board's analog inputs measuring `source`'s truths as the rig file's `daq.channels` say
     (each channel's reading of its quantity; unused inputs read 0)."""
-    wired = [(channel.adc, TRUTHS.index(name), channel) for name, channel in channels.items()]
+    # (input, quantity, offset, gain) of each channel: `AnalogChannel.reading`'s arithmetic, unrolled
+    wired = [(c.adc, TRUTHS.index(name), c.offset, c.gain) for name, c in channels.items()]
 
     def read(t_s: list[float]) -> list[list[float]]:
         rows = []
         for truths in source.truths(t_s):
             row = [0.0] * ANALOG_CHANNELS
-            for adc, k, channel in wired:
-                row[adc] = channel.reading(truths[k])
+            for adc, k, offset, gain in wired:
+                row[adc] = (truths[k] - offset) / gain
             rows.append(row)
         return rows
 

@@ -49,6 +49,8 @@ logger = logging.getLogger(__name__)
 _COUNT = struct.Struct("<Q")
 _SAMPLE = struct.Struct(f"<{len(SAMPLE_COLUMNS)}d")
 _COLUMNS = operator.itemgetter(*SAMPLE_COLUMNS)  # a sample's values in column order, in one C call
+_DOUBLE = struct.Struct("<d")
+_T_OFFSET = SAMPLE_COLUMNS.index("t") * _DOUBLE.size  # of `t` within a sample
 
 
 class PlantLog:
@@ -94,6 +96,15 @@ class PlantLog:
             return None
         values = _SAMPLE.unpack_from(self._map, _COUNT.size + ((count - 1) % self.SLOTS) * _SAMPLE.size)
         return dict(zip(SAMPLE_COLUMNS, values, strict=True))
+
+    def latest_t(self) -> float | None:
+        """The newest sample's plant time `t` [s] alone (the host's every cycle), or None before the first."""
+        count = self.count
+        if not count:
+            return None
+        offset = _COUNT.size + ((count - 1) % self.SLOTS) * _SAMPLE.size + _T_OFFSET
+        t_s: float = _DOUBLE.unpack_from(self._map, offset)[0]
+        return t_s
 
     def close(self) -> None:
         self._map.close()

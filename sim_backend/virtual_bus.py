@@ -279,8 +279,12 @@ class VirtualCanRig(HardwareRig):
             sample = self.twin.last_sample
         else:
             assert self.child_plant_log is not None
+            if self.plant_log is None:  # its time alone: no dict of the whole sample every cycle
+                t_s = self.child_plant_log.latest_t()
+                assert t_s is not None  # the drive answered a SYNC: its sample is in
+                return t_s
             latest = self.child_plant_log.latest()
-            assert latest is not None  # the drive answered a SYNC: its sample is in
+            assert latest is not None
             sample = latest
         if self.plant_log is not None:
             self.plant_log.append(dict(sample))
