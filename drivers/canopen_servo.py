@@ -294,6 +294,14 @@ class CanopenServo:
         except ModeUnavailableError as exc:
             raise DriveSettingError(f"node {self.settings.node_id}: {exc}") from None
 
+    def choose_load(self) -> ModeChoice:
+        """A load drive's mode (`DriveModes.choose_load`: a torque mode, else a velocity mode to brake by
+        holding speed); DriveSettingError in one line naming what the drive offers."""
+        try:
+            return self._modes().choose_load()
+        except ModeUnavailableError as exc:
+            raise DriveSettingError(f"node {self.settings.node_id}: {exc}") from None
+
     def offer(self) -> str:
         """What the drive offers, in words (its modes and where that was read)."""
         return self._modes().offer()

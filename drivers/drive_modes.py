@@ -59,6 +59,10 @@ WHY: Final[dict[tuple[ControlMode, OperationMode], str]] = {
     (ControlMode.POSITION, OperationMode.INTERPOLATED_POSITION): "no CSP: positions interpolated per SYNC",
 }
 
+BRAKE_MODES: Final = (OperationMode.CYCLIC_SYNC_VELOCITY, OperationMode.PROFILE_VELOCITY)
+"""A load drive without a torque mode brakes in these, best first: its own speed loop holds the speed."""
+BRAKE_WHY: Final = "it cannot apply a set torque; its speed loop gives whatever torque holds the speed"
+
 TORQUE_OFFSET: Final = (0x60B2, 0)
 """CiA 402 torque offset, ‰ of the motor rated torque (0x6076), added to the drive's torque demand."""
 FEEDFORWARD_WHY: Final[dict[OperationMode, str]] = {
@@ -173,6 +177,23 @@ class DriveModes:
             f"a feed-forward torque needs cyclic synchronous position with the torque offset 0x60B2"
             f" PDO-mappable, or cyclic synchronous torque; the drive lacks {_listed(missing)}:"
             f" it offers {self.offer()}"
+        )
+
+    def choose_load(self) -> ModeChoice:
+        """A load drive's mode: a torque mode (CST, else profile torque) to apply the load torque; without
+        one, a velocity mode (CSV, else PV) to brake by holding its shaft's speed; ModeUnavailableError
+        naming what the drive offers if neither."""
+        for mode in PREFERENCE[ControlMode.CURRENT]:
+            if mode in self.usable:
+                return ModeChoice(ControlMode.CURRENT, mode, WHY[(ControlMode.CURRENT, mode)])
+        for mode in BRAKE_MODES:
+            if mode in self.usable:
+                return ModeChoice(
+                    ControlMode.VELOCITY, mode, f"no torque mode: a brake holding speed ({BRAKE_WHY})"
+                )
+        raise ModeUnavailableError(
+            "a load drive needs a torque mode (CST, profile torque) or, to brake by holding speed, cyclic"
+            f" synchronous or profile velocity: it offers {self.offer()}"
         )
 
     def offer(self) -> str:

@@ -27,7 +27,9 @@
 
 A dynamometer bench (`canopen.drives` with a `load` drive, `drivers.canopen_config.DriveEntry`): the
 load drive shares the axis drive's bus and SYNC (`CanopenServo.follow`), runs in torque mode (CST, else
-profile torque), and is given −τ_ext each cycle (the model's τ_ext opposes the output's motion). The
+profile torque), and is given −τ_ext each cycle (the model's τ_ext opposes the output's motion); one
+without a torque mode brakes instead (`brake`: CSV or PV holding the output's speed, `hold_output`),
+and a segment asking it for a load torque is refused. The
 bus load of both drives' cyclic frames is checked at opening, at each drive's worst mapping. It is
 enabled after the axis and unloaded (torque 0, then disabled) before the axis disables, so it never
 turns a free arm. A fault, EMCY, lost heartbeat or a breach of its own trips (`current_trip_a`,
@@ -88,7 +90,7 @@ from drivers.canopen_config import (
 )
 from drivers.canopen_servo import TORQUE_MODES, CanopenServo, CanopenServoError, DriveSettingError, Feedback
 from drivers.cia402 import OperationMode, State
-from drivers.daq_protocol import ANALOG_CHANNELS, STATUS_CAP_RANGE, STATUS_ENCODER_FAULT, DecoderStats
+from drivers.daq_protocol import STATUS_CAP_RANGE, STATUS_ENCODER_FAULT, DecoderStats
 from drivers.drive_modes import ModeChoice
 from drivers.serial_daq import (
     ANALOG_QUANTITIES,
@@ -308,7 +310,7 @@ class DaqTally:
         if not n:
             return
         # From the stream's index span, not block to block: a late frame fills a gap counted before.
-        first, last = int(block.index.min()), int(block.index.max())
+        first, last = int(block.index[0]), int(block.index[-1])  # a block is in device-time order
         if self._span is not None:
             first, last = min(first, self._span[0]), max(last, self._span[1])
         self._span, self._stream_samples = (first, last), self._stream_samples + n
@@ -391,11 +393,16 @@ class HardwareRig(Rig):
             self.servo.boot()
             if self.load_servo is not None:
                 self.load_servo.boot()
-                self._load_choice = self.load_servo.choose(ControlMode.CURRENT)
+                self._load_choice = self.load_servo.choose_load()
+                node = self.load_servo.settings.node_id
+                logger.info("rig %s: load drive: node %d: %s", config.name, node, self._load_choice)
         except BaseException:
             self._release()
             raise
-        if self.load_servo is not None and load is None:
+        self.brake = self.load_servo is not None and self._load_choice.program == ControlMode.VELOCITY
+        """The load drive has no torque mode: it brakes by holding the output's speed (`hold_output`)."""
+        self._brake_speed_rad_s: float | None = None  # released until `hold_output` says otherwise
+        if self.load_servo is not None and load is None and not self.brake:
             load = self._stage_load
         self._load = load
         self._sample_clock = sample_clock
@@ -404,10 +411,16 @@ class HardwareRig(Rig):
         self._pending_error: RigFaultError | None = None
         self._cycling: threading.Thread | None = None  # the thread inside _run_cycles, if any
         self._streaming = False
-        # Device time, θ_l, θ_m, the analog readings (ANALOG_CHANNELS a row; none without channels).
-        self._daq_samples: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+        # Device time and, per sample, θ_l, θ_m and the readings of the `daq.channels` inputs (in order).
+        self._daq_samples: list[tuple[np.ndarray, np.ndarray]] = []
         self._channels = self.constants.daq.channels if self.constants.daq is not None else {}
         self.extra_columns = tuple(self._channels)
+        channels = list(self._channels.values())
+        self._channel_adc = [c.adc for c in channels]
+        # Each channel's gain, offset and range as a row, for all channels' values in one pass.
+        self._channel_gain, self._channel_offset, self._channel_min, self._channel_max = (
+            np.array([getattr(c, f) for c in channels]) for f in ("gain", "offset", "min", "max")
+        )
         self._analog_rows: dict[str, np.ndarray] = {}
         self._clock_stop = threading.Event()
         self._clock_thread: threading.Thread | None = None
@@ -442,6 +455,13 @@ class HardwareRig(Rig):
         super().check_segment(segment)
         if segment.feedforward is None:
             self.servo.choose(segment.mode)  # a mode the drive cannot play: refused before anything moves
+        if self.brake and np.any(np.asarray(segment.tau_ext) != 0.0):
+            assert self.load_entry is not None
+            raise RigError(
+                f"rig {self.config.name!r}: segment {segment.label!r} asks for a load torque τ_ext, and the"
+                f" load drive (node {self.load_entry.node_id}) has no torque mode: it brakes by holding the"
+                " output's speed (hold_output) and cannot apply a set torque: run it with tau_ext 0"
+            )
         if self._load is None and np.any(np.asarray(segment.tau_ext) != 0.0):
             raise RigError(
                 f"rig {self.config.name!r}: segment {segment.label!r} asks for a load torque τ_ext, and"
@@ -480,21 +500,55 @@ class HardwareRig(Rig):
         self.servo.enable()
         self._enable_load()
 
+    def hold_output(self, speed_rad_s: float | None) -> None:
+        """On a bench whose load drive brakes (`brake`): hold the output at `speed_rad_s` [rad/s, the
+        output's own, within the load drive's velocity_limit_rad_s] while the axis is powered, from now
+        (between segments) or from `enable`; None releases it (speed 0, then disabled: no torque).
+
+        The axis then gives the torque (a current program) and the brake's speed loop takes it: what
+        it brakes with is read from its current and from τ_out; no set load torque."""
+        entry = self.load_entry
+        if not self.brake or entry is None:
+            raise RigError(
+                f"rig {self.config.name!r}: hold_output needs a load drive that brakes by holding speed (one"
+                " without a torque mode); "
+                + ("this one applies the load torque τ_ext" if entry else "this bench has no load drive")
+            )
+        assert entry.velocity_limit_rad_s is not None
+        if speed_rad_s is not None and not abs(speed_rad_s) <= entry.velocity_limit_rad_s:
+            raise RigError(
+                f"rig {self.config.name!r}: hold_output({speed_rad_s:g} rad/s) is beyond the load drive's"
+                f" velocity_limit_rad_s {entry.velocity_limit_rad_s:g} rad/s"
+            )
+        self._brake_speed_rad_s = speed_rad_s
+        axis = self.servo.last_feedback
+        if self._cycling is None and axis is not None and axis.state == State.OPERATION_ENABLED:
+            self._enable_load() if speed_rad_s is not None else self._unload()
+
     def _enable_load(self) -> None:
-        """The load drive after the axis (the arm is held): configured once in torque mode, no torque."""
+        """The load drive after the axis (the arm is held): in torque mode with no torque; a brake holding
+        the speed `hold_output` gave, or left disabled while released."""
         load = self.load_servo
         if load is None:
             return
         if load.mode is None:
-            load.configure(self._load_choice)
-        load.enable()
-        load.stage(0.0)
+            load.configure(self._load_choice)  # its answers come every cycle from then on, enabled or not
+        if self.brake and self._brake_speed_rad_s is None:
+            return
+        answer = load.last_feedback
+        if answer is None or answer.state != State.OPERATION_ENABLED:
+            load.enable()
+        load.stage(self._brake_speed_rad_s if self.brake and self._brake_speed_rad_s is not None else 0.0)
 
     def _unload(self) -> None:
-        """The load drive before the axis disables: torque 0, then disabled (never turning a free arm)."""
+        """The load drive before the axis disables: torque (or the brake's speed) 0, then disabled (never
+        turning a free arm)."""
         load = self.load_servo
         if load is None or load.mode is None:
             return
+        answer = load.last_feedback
+        if self.brake and (answer is None or answer.state != State.OPERATION_ENABLED):
+            return  # a released brake: already off
         load.stage(0.0)
         load.disable()
 
@@ -685,7 +739,8 @@ class HardwareRig(Rig):
         load, entry = self.load_servo, self.load_entry
         assert load is not None and entry is not None
         answer = load.last_feedback
-        if answer is None or answer.state != State.OPERATION_ENABLED:
+        released = self.brake and self._brake_speed_rad_s is None  # disabled on purpose: no torque
+        if answer is None or (answer.state != State.OPERATION_ENABLED and not released):
             state = answer.state if answer is not None else "no answer"
             return f"left OPERATION ENABLED: {state} ({'; '.join(load.faults()) or 'no fault reported'})"
         faults = load.faults()
@@ -771,64 +826,62 @@ class HardwareRig(Rig):
             self._take_daq(block if block is not None else self.daq.read_samples(timeout_s=0))
         else:
             self._take_daq(self.daq.read_until(t_last))
-        t_device, theta_l, theta_m, adc = self._merged_daq()
+        t_device, values = self._merged_daq()
         t_host = self.daq.host_time_s(t_device)  # one clock model for old and new samples alike
         stream = self.constants.daq or DaqStreamSettings()
         reach_s = EXTRAPOLATE_MAX_PERIODS * self.period_s + stream.samples_per_frame / stream.rate_hz
         if not len(t_host) or t_host[-1] < t_last - reach_s:
             self._take_daq(self.daq.read_until(t_last))  # too far behind to extrapolate: wait (or fail)
-            t_device, theta_l, theta_m, adc = self._merged_daq()
+            t_device, values = self._merged_daq()
             t_host = self.daq.host_time_s(t_device)
         self.daq_tally.extrapolated += int(np.count_nonzero(t_sync > t_host[-1]))
-        rows[:, _COLUMN["theta_l"]] = _interpolate(t_sync, t_host, theta_l)
+        aligned = _interpolate_rows(t_sync, t_host, values)  # θ_l, θ_m, the channels' readings
+        rows[:, _COLUMN["theta_l"]] = aligned[:, 0]
         keep = max(0, int(np.searchsorted(t_host, t_last, side="right")) - 1)
         if self._channels:
-            self._analog_rows = self._analog_values(t_sync, t_host, adc)
-        self._daq_samples = [(t_device[keep:], theta_l[keep:], theta_m[keep:], adc[keep:])]
+            self._analog_rows = self._analog_values(aligned[:, 2:])
+        self._daq_samples = [(t_device[keep:], values[keep:])]
         if log is not None:
             log.t_done_s[-1] = time.monotonic()  # the chunk's last cycle waited for the alignment
             # The log's own check, not the loop's work: after the cycle is done.
-            log.daq_theta_m_rad.extend(_interpolate(t_sync, t_host, theta_m).tolist())
+            log.daq_theta_m_rad.extend(aligned[:, 1].tolist())
 
-    def _analog_values(
-        self, t_sync: np.ndarray, t_host: np.ndarray, adc: np.ndarray
-    ) -> dict[str, np.ndarray]:
-        """Each `daq.channels` column at the SYNC times: its reading interpolated as θ_l is, then
-        `AnalogChannel.value` (NaN outside the sensor's range, counted). All channels in one pass of
-        array operations, element by element the same arithmetic: at a chunk's end, in its last cycle."""
-        names = list(self._channels)
-        if adc.shape[1] != ANALOG_CHANNELS:
-            raise DaqError(f"DAQ: samples without the analog inputs that daq.channels.{names[0]} reads")
-        channels = [self._channels[name] for name in names]
-        readings = _interpolate_columns(t_sync, t_host, adc[:, [c.adc for c in channels]])
-        gain, offset, low, high = (
-            np.array([[getattr(c, f)] for c in channels]) for f in ("gain", "offset", "min", "max")
-        )
-        value = gain * readings + offset
-        value = np.where((value >= low) & (value <= high), value, np.nan)
+    def _analog_values(self, readings: np.ndarray) -> dict[str, np.ndarray]:
+        """Each `daq.channels` column from its readings at the SYNC times (rows × channels), as
+        `AnalogChannel.value` gives it (NaN outside the sensor's range, counted): all channels in one
+        pass of array operations, at a chunk's end, in its last cycle."""
+        value = readings * self._channel_gain + self._channel_offset
+        value[(value < self._channel_min) | (value > self._channel_max)] = np.nan  # NaN stays NaN
         self.daq_tally.out_of_range += int(np.count_nonzero(np.isnan(value)))
-        return dict(zip(names, value, strict=True))  # rows of a C-ordered array: each contiguous
+        by_channel = np.ascontiguousarray(value.T)  # each channel's column contiguous
+        return dict(zip(self._channels, by_channel, strict=True))
 
-    def _merged_daq(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The samples kept so far as one array each (device time, θ_l, θ_m, analog rows), kept so."""
+    def _merged_daq(self) -> tuple[np.ndarray, np.ndarray]:
+        """The samples kept so far as one array each (device time; θ_l, θ_m, readings a row), kept so."""
         if not self._daq_samples:
-            return np.empty(0), np.empty(0), np.empty(0), np.empty((0, 0))
+            return np.empty(0), np.empty((0, 2 + len(self._channel_adc)))
         if len(self._daq_samples) > 1:
-            t_device, theta_l, theta_m, adc = (
-                np.concatenate(parts) for parts in zip(*self._daq_samples, strict=True)
-            )
-            if np.any(np.diff(t_device) <= 0):  # a late frame read after its successors: into place
+            t_device = np.concatenate([part[0] for part in self._daq_samples])
+            values = np.concatenate([part[1] for part in self._daq_samples])
+            if np.any(t_device[1:] <= t_device[:-1]):  # a late frame read after its successors: into place
                 t_device, keep = np.unique(t_device, return_index=True)
-                theta_l, theta_m, adc = theta_l[keep], theta_m[keep], adc[keep]
-            self._daq_samples = [(t_device, theta_l, theta_m, adc)]
+                values = values[keep]
+            self._daq_samples = [(t_device, values)]
         return self._daq_samples[0]
 
     def _take_daq(self, block: SampleBlock) -> None:
         self.daq_tally.add(block)
-        if len(block):
-            adc = block.adc if block.adc is not None else np.empty((len(block), 0))
-            self._daq_samples.append((block.t_device_s, block.theta_l_rad, block.theta_m_rad, adc))
-            self._merged_daq()  # each take, in the slack it is taken in: not all at the chunk's end
+        if not len(block):
+            return
+        if self._channel_adc:
+            if block.adc is None:
+                name = next(iter(self._channels))
+                raise DaqError(f"DAQ: samples without the analog inputs that daq.channels.{name} reads")
+            values = np.column_stack((block.theta_l_rad, block.theta_m_rad, block.adc[:, self._channel_adc]))
+        else:
+            values = np.column_stack((block.theta_l_rad, block.theta_m_rad))
+        self._daq_samples.append((block.t_device_s, values))
+        self._merged_daq()  # each take, in the slack it is taken in: not all at the chunk's end
 
     def _start_daq(self) -> None:
         if self.daq is None or self._streaming:
@@ -892,23 +945,17 @@ def worst_bus_load(servos: list[CanopenServo], period_s: float) -> BusLoad:
     return bus_load(plans, period_s, bitrate)
 
 
-def _interpolate_columns(t: np.ndarray, t_samples: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """`_interpolate` of each column of `values` (samples × columns), as rows (columns × len(t))."""
-    out = np.empty((values.shape[1], len(t)))
-    for j in range(values.shape[1]):
-        out[j] = np.interp(t, t_samples, values[:, j])
-    beyond = t > t_samples[-1]
-    if beyond.any() and len(t_samples) > 1:
-        slope = (values[-1] - values[-2]) / (t_samples[-1] - t_samples[-2])
-        out[:, beyond] = values[-1][:, None] + slope[:, None] * (t[beyond] - t_samples[-1])
-    return out
-
-
-def _interpolate(t: np.ndarray, t_samples: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """`values` at times `t`: linear between samples, along the last two past the newest one."""
-    out = np.interp(t, t_samples, values)
-    beyond = t > t_samples[-1]
-    if np.any(beyond) and len(t_samples) > 1:
-        slope = (values[-1] - values[-2]) / (t_samples[-1] - t_samples[-2])
-        out[beyond] = values[-1] + slope * (t[beyond] - t_samples[-1])
-    return out
+def _interpolate_rows(t: np.ndarray, t_samples: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """`values` (samples × columns) at times `t` (rows × columns): linear between the samples around each
+    time, along the last two past the newest one, the first sample's before it (as np.interp). The
+    samples' times increase strictly. One search and one weight for all columns."""
+    n = len(t_samples)
+    if n < 2:
+        return np.repeat(values[:1], len(t), axis=0)
+    j = np.searchsorted(t_samples, t, side="right") - 1
+    np.clip(j, 0, n - 2, out=j)
+    t0 = t_samples[j]
+    weight = (t - t0) / (t_samples[j + 1] - t0)
+    np.maximum(weight, 0.0, out=weight)
+    below = values[j]
+    return below + weight[:, None] * (values[j + 1] - below)

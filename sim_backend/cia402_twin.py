@@ -89,7 +89,8 @@ from rig.safety import (
     NO_ABORT,
 )
 from sim_backend.daq_twin import PlantStateSource
-from sim_backend.simulated_drive import T_T_S, T_TEMP_GEAR, T_TEMP_MOTOR, SimulatedDrive
+from sim_backend.inprocess import TemperatureProbes, TorqueTransducers
+from sim_backend.simulated_drive import T_TEMP_GEAR, T_TEMP_MOTOR, SimulatedDrive
 
 logger = logging.getLogger(__name__)
 
@@ -107,6 +108,7 @@ EMCY_FOR_ABORT: Final = {
 NMT_OPERATIONAL, NMT_STOPPED = "OPERATIONAL", "STOPPED"
 AMBIENT_C: Final = 25.0
 """The temperatures a plant without a thermal section reads: a room's, steady [°C]."""
+_AMBIENT_ROWS: Final = np.full((2, 1), AMBIENT_C)  # winding and gear (TEMPERATURE_COLUMNS), one cycle
 LOAD_COB_ID: Final = 0x6E0
 """A sim-only frame (unused in CiA 301's predefined set): the load torque τ_ext [N·m] as a little-endian
 float64, applied from the next SYNC. A host in another process sets the load with it."""
@@ -123,6 +125,9 @@ _MODES: Final = {int(m): m for m in OperationMode}  # a dict look-up costs less 
 
 _NO_DATA: Final[dict[int, bytes]] = {}
 _ZERO_SAMPLE: Final = dict.fromkeys(SAMPLE_COLUMNS, 0.0)
+BRAKE_BANDWIDTH_HZ: Final = 5.0
+"""A load twin's speed loop in a velocity mode: well under the seed's gear resonance (~13 Hz: K_s with J_l
+and the motor's reflected inertia), so the brake holds the output without exciting it."""
 
 
 class _Codec(NamedTuple):
@@ -186,6 +191,9 @@ class Cia402Twin:
         self.drive.record_truth(True)  # the shaft torque and temperatures the DAQ's analog inputs read
         self.measured = PlantStateSource(self.plant)
         """The plant's state after each SYNC, by the host time the SYNC was taken: a DAQ twin's source."""
+        # The bench's sensors as the simulated rig has them (its plant is the gear's own: no load rotor).
+        self._transducers = TorqueTransducers(config, model, model)
+        self._probes: TemperatureProbes | None = None  # from the first reading's temperatures
         # Load the compiled loop now, not on the first SYNC: a master would wait for it and time out.
         SimulatedDrive(Plant(model), config).run(ControlMode.CURRENT, np.zeros(1), np.zeros(1), 0.0)
         self.period_s = 1.0 / config.sample_rate_hz
@@ -539,18 +547,28 @@ class Cia402Twin:
             self.tau_ext_nm = float(np.frombuffer(bytes(data), "<f8")[0])
 
     def _truths(self) -> tuple[float, float, float, float]:
-        """What the DAQ's analog inputs measure (`daq_twin.TRUTHS`): the motor's torque K_m·i_a into the
-        gear (its rotor's inertia torque neglected) [N·m], the shaft torque T_s out of it [N·m], the gear
-        and winding temperatures [°C] (a model without `thermal` stays at AMBIENT_C)."""
+        """What the DAQ's analog inputs read (`daq_twin.TRUTHS`) after this SYNC's last cycle, as the
+        simulated bench's sensors read it (docs/CATALOG_TESTS.md): the torque transducers
+        (`inprocess.TorqueTransducers`: τ_in = r·T_s + F_m, τ_out the output shaft's torque beyond the
+        gear's own inertia) and the temperature probes (`inprocess.TemperatureProbes`: gear, winding;
+        AMBIENT_C without a `thermal` section), each with the rig file's seeded noise [N·m, °C]."""
         truth = self.drive.truth
         assert truth is not None  # kept on from the start, emptied here
         if not truth:
             return 0.0, 0.0, AMBIENT_C, AMBIENT_C
-        row = truth[-1][-1]
+        cycle = truth[-1][-1:]
         truth.clear()
-        tau_in = self.model.motor.K_m * self.last_sample.get("i_a", 0.0)
-        temps = (row[T_TEMP_GEAR], row[T_TEMP_MOTOR]) if self.model.thermal is not None else (AMBIENT_C,) * 2
-        return tau_in, float(row[T_T_S]), float(temps[0]), float(temps[1])
+        torques = self._transducers.read(cycle)
+        plant_c = cycle[:, [T_TEMP_MOTOR, T_TEMP_GEAR]].T if self.model.thermal is not None else _AMBIENT_ROWS
+        if self._probes is None:
+            self._probes = TemperatureProbes(self.config, plant_c[:, 0])
+        temps = self._probes.read(plant_c, self.period_s)
+        return (
+            float(torques["tau_in"][0]),
+            float(torques["tau_out"][0]),
+            float(temps["temp_gear"][0]),
+            float(temps["temp_motor"][0]),
+        )
 
     def _cycles_per_sync(self) -> int:
         period_us = self._get_or(0x1006, 0)
@@ -863,7 +881,8 @@ def _saturate(value: int, bound: int) -> int:
 
 class LoadTwin(Cia402Twin):
     """The load drive of a dynamometer bench: a CiA 402 drive in torque mode (CST or profile torque) on
-    the output shaft of the axis twin's plant, on the axis twin's network (the same bus).
+    the output shaft of the axis twin's plant, on the axis twin's network (the same bus). In a velocity
+    mode (CSV, PV: an EDS without torque modes) it brakes: its speed loop holds the output's speed.
 
     Each SYNC the axis twin takes, this drive's torque T_load (its target, within its limits; none while
     not OPERATION ENABLED, and none in quick stop: a load drive unloads) is applied to the plant's
@@ -885,6 +904,7 @@ class LoadTwin(Cia402Twin):
         self.axis = axis
         self.torque_nm = 0.0
         """The torque the drive applies to the output this cycle [N·m]."""
+        self._speed_integral_nm = 0.0  # a velocity mode's speed loop
         super().__init__(
             cast(can.BusABC, None), node_id, model, axis.config, eds_path, rated_current_a, axis.network
         )
@@ -914,10 +934,29 @@ class LoadTwin(Cia402Twin):
                 mode, setpoint = self._command(1)
                 if mode == ControlMode.CURRENT:
                     torque = float(setpoint[-1]) * self.model.motor.K_m
+                elif mode == ControlMode.VELOCITY:
+                    torque = self._hold_speed(float(setpoint[-1]))
             elif self.state == State.QUICK_STOP_ACTIVE:
                 self._enter(State.SWITCH_ON_DISABLED)  # unloaded at once: torque off
+            if self.state != State.OPERATION_ENABLED:
+                self._speed_integral_nm = 0.0  # off: its speed loop starts afresh when enabled
             self.torque_nm = torque
             self.axis.tau_ext_nm = -torque
+
+    def _hold_speed(self, target_rad_s: float) -> float:
+        """A velocity mode (CSV, PV): its speed loop on the output, a PI tuned on the inertia it moves (the
+        output's and the motor's through the gear, J_l + J_m/r²) for BRAKE_BANDWIDTH_HZ, within its
+        current limit (0x6073): the torque it applies [N·m]."""
+        omega_rad_s = float(self.axis.plant.x[X.OMEGA_L])
+        mechanics = self.axis.model.mechanics
+        inertia = mechanics.J_l + mechanics.J_m / mechanics.r**2
+        kp = inertia * 2 * math.pi * BRAKE_BANDWIDTH_HZ  # N·m per rad/s
+        ki = kp * 2 * math.pi * BRAKE_BANDWIDTH_HZ / 3  # integral corner a third of the bandwidth
+        limit_nm = self._get_or(0x6073, _INT16) * self.rated_current_a / 1000.0 * self.model.motor.K_m
+        error = target_rad_s - omega_rad_s
+        integral = min(max(self._speed_integral_nm + ki * error * self.period_s, -limit_nm), limit_nm)
+        self._speed_integral_nm = integral  # clamped: no wind-up against the limit
+        return min(max(kp * error + integral, -limit_nm), limit_nm)
 
     def after_step(self) -> None:
         """After the axis's step: the output's state as this drive's actual values, its TPDOs."""

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
-from scipy.signal import lfilter
 
 from model.feedforward import FeedForwardTrack
 from model.params import HarmonicDriveModel, load_model
@@ -137,7 +137,14 @@ class TemperatureProbes:
         n = plant_c.shape[1]
         for i, name in enumerate(TEMPERATURE_COLUMNS):
             truth = plant_c[i]
-            if self.lag_s > 0.0 and n:
+            if self.lag_s > 0.0 and n == 1:  # a reading a cycle (the CANopen twin's): the recursion itself
+                alpha = 1.0 - math.exp(-period_s / self.lag_s)
+                seen = self.state_c[i] + alpha * (truth - self.state_c[i])
+            elif self.lag_s > 0.0 and n:
+                from scipy.signal import (
+                    lfilter,  # here: the twins' process reads a cycle at a time without it
+                )
+
                 alpha = 1.0 - np.exp(-period_s / self.lag_s)  # seen[k] = seen[k-1] + α·(truth[k] − seen[k-1])
                 seen, _ = lfilter([alpha], [1.0, alpha - 1.0], truth, zi=[(1.0 - alpha) * self.state_c[i]])
             else:
