@@ -952,11 +952,12 @@ def _line_spacing(tr: TruthRun) -> float:
 
 
 def _chirp_mean_speed(tr: TruthRun, key: str) -> float:
-    """The true motor speed's mean magnitude over the analyzed periods of both sweeps."""
-    from rig.experiments.chirp import SWEEPS, analyzed_rows
+    """The true motor speed's mean magnitude over the analyzed periods of every sweep."""
+    from rig.experiments.chirp import analyzed_rows, sweep_labels
 
     means = [
-        abs(float(np.mean(tr.truth["omega_m"][analyzed_rows(tr.run, s, tr.params, tr.ctx)]))) for s in SWEEPS
+        abs(float(np.mean(tr.truth["omega_m"][analyzed_rows(tr.run, s, tr.params, tr.ctx)])))
+        for s in sweep_labels(tr.params)
     ]
     return float(np.mean(means))
 
@@ -1044,6 +1045,12 @@ _add(
         _comp_truth,
         rel_tol=0.02,
         reason="a ratio of the figures above; their tolerance relative to the ramp's ~1e-3 rad",
+    ),
+    Check(
+        r"temperature_gain_(step|sine|ramp)(_std)?",
+        _comp_truth,
+        rel_tol=0.05,
+        reason="a ratio of two RMS errors of ~1e-4 rad, each within 3 µrad (above): ±3 % each",
     ),
 )
 

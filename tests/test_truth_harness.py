@@ -129,15 +129,16 @@ def test_a_metric_off_by_more_than_its_tolerance_fails(runs: dict[str, T.TruthRu
 
 def test_chirp_frf_matches_the_linearized_plant(runs: dict[str, T.TruthRun]) -> None:
     """The chirp's plant FRF (current → motor speed) against the plant linearized about the sweep's mean
-    speed, 1 to 10 Hz (issue 31 item 2's target: 1 dB; before, 4–6 dB off below 6 Hz). A line further off
-    must say so: its stated band (magnitude_std_db, 1σ from the data) covers the truth at 2σ."""
+    speed, 1 to 10 Hz: every line within 1 dB (issue 31's target; before, 4–6 dB off below 6 Hz, then the
+    10 Hz line 1.9 dB off with one Schroeder multisine), and within 4σ of its stated band (magnitude_std_db,
+    1σ from the spread of the four sweeps' own estimates, 3 degrees of freedom)."""
     tr = runs["chirp"]
     table = tr.results.tables["frf_speed"]
     band = (table["freq_hz"] >= 1.0) & (table["freq_hz"] <= 10.0)
     linear_db = 20 * np.log10(np.abs(T.linearized_speed_frf(tr, table["freq_hz"][band])))
     error_db = table["magnitude_db"][band] - linear_db
     sigma_db = table["magnitude_std_db"][band] if "magnitude_std_db" in table else np.zeros_like(error_db)
-    wrong = (np.abs(error_db) > 1.0) & (np.abs(error_db) > 2.0 * sigma_db)
+    wrong = (np.abs(error_db) > 1.0) | (np.abs(error_db) > 4.0 * sigma_db)
     assert not np.any(wrong), list(
         zip(table["freq_hz"][band][wrong], error_db[wrong], sigma_db[wrong], strict=True)
     )

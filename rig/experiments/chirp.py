@@ -1,11 +1,12 @@
 """`chirp`: frequency response of the axis, 0.5–20 Hz, with coherence (the article's Bode plots to 10 Hz).
 
-Excitation: a periodic chirp — a Schroeder multisine, i.e. a frequency sweep over `period_s` made
-exactly periodic, one line every 1/period_s Hz from f_start to f_stop — in the motor speed, riding on a
-mean speed, played in closed-loop position mode (the set-point is the integral of that speed): out
-towards the side of the stroke with more room, then after a smooth turn back over the same stretch,
-mirrored. Each sweep opens with one period that fades the excitation in and is not analyzed (the
-loop's transient), then `periods` whole periods are analyzed. Why so:
+Excitation: periodic multisines — one line every 1/period_s Hz from f_start to f_stop, each with a
+random phase, the crest factor lowered by clipping — in the motor speed, riding on a mean speed, played in
+closed-loop position mode (the set-point is the integral of that speed): out towards the side of the
+stroke with more room, then after a smooth turn back over the same stretch, mirrored, `passes` times.
+Every sweep plays its own realization of the phases (the amplitudes the same). Each sweep opens with one
+period that fades the excitation in and is not analyzed (the loop's transient), then `periods` whole
+periods are analyzed. Why so:
 - the article's Bode plots are of the position system; the position loop keeps the axis inside the
   stroke (no drift of integrated speed errors) under the rig's following-error watch;
 - with the excitation's peak below the mean speed the motor never reverses, so Coulomb friction keeps
@@ -27,6 +28,12 @@ loop's transient), then `periods` whole periods are analyzed. Why so:
   level C(θ_m), quadratic in θ_m along the ramp, is taken out as a polynomial trend in time
   (`periodic_records`); and the sweep back over the same stretch flips the friction's sign, so its
   slope against position (a small spring) cancels between the sweeps;
+- a nonlinearity the excitation drives (the seed's load swings at its mode by more than its mean
+  speed, so its Coulomb friction reverses) distorts onto the excited lines; with one excitation that
+  distortion repeats every period and averaging keeps it (the 10 Hz line 1.9 dB off with one Schroeder
+  multisine). It differs between phase realizations like noise (Pintelon and Schoukens' robust method
+  for the best linear approximation), so the sweeps' own realizations average it out, and the spread
+  of their estimates measures what is left;
 - a barely damped mode (the seed's load with its motor held by the loop, J_l/b_l = 4 s) still rings
   from the speed-up and the lead-in through the analyzed periods: not periodic, on no line, that ring
   leaks into every line of a period's DFT (by several dB on a linear plant; figures: docs/BENCHMARKS.md,
@@ -41,11 +48,11 @@ that every analyzed signal is periodic:
 - `frf_closed_loop`: position system, output set-point → θ_l [rad per rad].
 In closed loop the plain H1 = P_uy/P_uu is biased wherever noise fed back through the controller is not
 small against the excitation; the reference is uncorrelated with it, so the plant is estimated as
-H = Σ R̄·Y / Σ R̄·U over the periods of both sweeps (the indirect, "joint input–output" estimate), its
+H = Σ R̄·Y / Σ R̄·U over the periods of every sweep (the indirect, "joint input–output" estimate), its
 coherence the weaker of γ²(r, u) and γ²(r, y). Each table also carries the 1σ band of H from the data:
-the spread of the per-period estimates Y/U over √(periods) (`magnitude_std_db`, `phase_std_deg`); it
-holds the friction's per-period response that the average cancels, so it is wider than the average's
-error where friction dominates. The measured FRFs include the drive's sampling chain (command held one
+the spread of the sweeps' own estimates over √(sweeps) (`magnitude_std_db`, `phase_std_deg`), which
+holds noise, the friction's per-period response that the average cancels, and the nonlinear distortion
+that differs between realizations. The measured FRFs include the drive's sampling chain (command held one
 cycle, speed from filtered encoder differences).
 
 Metrics: `coherence_1_10hz_<frf>`: mean coherence over the lines from 1 to 10 Hz;
@@ -73,6 +80,9 @@ from rig.experiments.tracking import check_stroke, output_segment
 from rig.interface import ControlMode, Segment
 
 SWEEPS = ("sweep-out", "sweep-back")
+"""The first pass's sweeps; the k-th pass (k ≥ 2) labels them `sweep-out-k`, `sweep-back-k`."""
+CREST_ITERATIONS = 40
+"""Clipping iterations that bring a random-phase multisine's crest factor down (`excitation`)."""
 COHERENCE_BAND_HZ = (1.0, 10.0)
 """Band of the mean-coherence metrics: the article's Bode range."""
 
@@ -120,6 +130,13 @@ class ChirpParams(ExperimentParams):
     )
     # A lightly damped resonance loses coherence to the loop's nonlinearity near it: 0.5 keeps its peak
     # (half the output power still linear in the reference) and drops the points friction swamps.
+    passes: int = Field(
+        default=2,
+        ge=1,
+        le=8,
+        description="out-and-back passes over one stretch; each sweep its own random-phase multisine [–]",
+    )
+    phase_seed: int = Field(default=0, ge=0, description="seed of the sweeps' random phases [–]")
     coherence_min: float = Field(
         default=0.5, gt=0, lt=1, description="points below it are not used for resonance and bandwidth [–]"
     )
@@ -151,8 +168,10 @@ class ChirpParams(ExperimentParams):
         return amp
 
 
-def excitation(params: ChirpParams, ctx: RigContext) -> tuple[np.ndarray, np.ndarray]:
-    """One period of the speed excitation [rad/s] (peak speed_amp) and its line frequencies [Hz]."""
+def excitation(params: ChirpParams, ctx: RigContext, realization: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """One period of the speed excitation [rad/s] (peak speed_amp) and its line frequencies [Hz]: the
+    `realization`-th random-phase multisine of the lines' amplitudes (phases seeded by `phase_seed`), its
+    crest factor lowered by clipping it and restoring the amplitudes, CREST_ITERATIONS times."""
     cycles = ctx.cycles(params.period_s)
     period_s = cycles / ctx.rate_hz  # whole cycles: every line is a whole number of cycles per period
     lines = np.arange(
@@ -160,12 +179,21 @@ def excitation(params: ChirpParams, ctx: RigContext) -> tuple[np.ndarray, np.nda
     )
     freq_hz = lines / period_s
     amps = freq_hz**-params.amp_exponent
-    # Schroeder's phases for a given power spectrum p: φ_k = −2π·Σ_{l<k} (k − l)·p_l, a low crest factor.
-    cumulative = np.cumsum(amps**2 / np.sum(amps**2))
-    phases = -2 * np.pi * np.concatenate([[0.0], np.cumsum(cumulative)[:-1]])
-    t_s = np.arange(cycles) / ctx.rate_hz
-    wave = amps @ np.cos(2 * np.pi * np.outer(freq_hz, t_s) + phases[:, None])
+    phases = np.random.default_rng([params.phase_seed, realization]).uniform(0.0, 2 * np.pi, lines.size)
+    spectrum = np.zeros(cycles // 2 + 1, dtype=complex)
+    for _ in range(CREST_ITERATIONS):
+        spectrum[lines] = amps * np.exp(1j * phases)
+        wave = np.fft.irfft(spectrum, cycles)
+        limit = 0.8 * np.max(np.abs(wave))
+        phases = np.angle(np.fft.rfft(np.clip(wave, -limit, limit))[lines])
+    spectrum[lines] = amps * np.exp(1j * phases)
+    wave = np.fft.irfft(spectrum, cycles)
     return params.speed_amp_motor_rad_s * wave / np.max(np.abs(wave)), freq_hz
+
+
+def sweep_labels(params: ChirpParams) -> list[str]:
+    """Every sweep's label, in the order played: out, back, out, back, ... (SWEEPS)."""
+    return [f"{label}{f'-{k + 1}' if k else ''}" for k in range(params.passes) for label in SWEEPS]
 
 
 def sweep_mean_speed(params: ChirpParams, ctx: RigContext) -> float:
@@ -186,7 +214,8 @@ def sweep_mean_speed(params: ChirpParams, ctx: RigContext) -> float:
 
 
 def speed_profile(params: ChirpParams, ctx: RigContext) -> list[tuple[str, np.ndarray]]:
-    """Motor speed per cycle of each segment: speed up, sweep out, turn, sweep back, slow down."""
+    """Motor speed per cycle of each segment: speed up, then per pass sweep out, turn, sweep back (a turn
+    between passes), slow down. Each sweep plays its own realization of the excitation (`excitation`)."""
 
     def times(duration_s: float) -> np.ndarray:
         return np.arange(ctx.cycles(duration_s)) / ctx.rate_hz
@@ -195,21 +224,26 @@ def speed_profile(params: ChirpParams, ctx: RigContext) -> list[tuple[str, np.nd
     # Out towards the side with more room, so that the stroke used is the larger free one.
     ahead, behind = limits.travel_max_out_rad - start_out, start_out - limits.travel_min_out_rad
     mean = sweep_mean_speed(params, ctx) * (1.0 if ahead >= behind else -1.0)
-    wave, _ = excitation(params, ctx)
     lead = times(params.period_s)
-    sweep = np.tile(wave, params.periods + 1)
-    sweep[: len(lead)] *= (1 - np.cos(np.pi * lead / params.period_s)) / 2  # fade in over the lead-in
     ramp, turn = times(params.ramp_s), times(2 * params.ramp_s)
-    # Sweeps end on whole periods, so the excitation fading out over the turn continues from wave[0].
+    fade_in = (1 - np.cos(np.pi * lead / params.period_s)) / 2  # over the lead-in, not analyzed
+    # Sweeps end on whole periods, so the excitation fading out over a turn continues from wave[0].
     fade_turn = (1 + np.cos(np.pi * turn / (2 * params.ramp_s))) / 2
     fade_ramp = (1 + np.cos(np.pi * ramp / params.ramp_s)) / 2
-    return [
-        ("accel", mean * (1 - fade_ramp)),
-        (SWEEPS[0], mean + sweep),
-        ("turn", mean * (2 * fade_turn - 1) + np.resize(wave, turn.size) * fade_turn),
-        (SWEEPS[1], -mean - sweep),
-        ("decel", -(mean + np.resize(wave, ramp.size)) * fade_ramp),
-    ]
+    profile = [("accel", mean * (1 - fade_ramp))]
+    labels = sweep_labels(params)
+    for k, label in enumerate(labels):
+        wave, _ = excitation(params, ctx, k)
+        sweep = np.tile(wave, params.periods + 1)
+        sweep[: len(lead)] *= fade_in
+        sign = 1.0 if k % 2 == 0 else -1.0  # out, then back over the same stretch
+        profile.append((label, sign * (mean + sweep)))
+        if k + 1 < len(labels):
+            turning = mean * (2 * fade_turn - 1) + np.resize(wave, turn.size) * fade_turn
+            profile.append(("turn" if k == 0 else f"turn-{k + 1}", sign * turning))
+        else:
+            profile.append(("decel", sign * (mean + np.resize(wave, ramp.size)) * fade_ramp))
+    return profile
 
 
 def analyzed_rows(run: Run, label: str, params: ChirpParams, ctx: RigContext) -> slice:
@@ -303,7 +337,7 @@ def frf_tables(run: Run, params: ChirpParams, ctx: RigContext) -> dict[str, dict
     _, lines_hz = excitation(params, ctx)
     bins = np.rint(lines_hz * period_s).astype(int)
     spectra: dict[str, list[np.ndarray]] = {name: [] for name in ("reference", "current", "speed", "load")}
-    for label in SWEEPS:
+    for label in sweep_labels(params):
         rows = analyzed_rows(run, label, params, ctx)
         set_out = ctx.gear_ratio * run["setpoint"][rows.start - 1 : rows.stop]
         # The mean-speed ramp of the set-point, exact over whole periods (the excitation sums to zero).
@@ -327,12 +361,14 @@ def frf_tables(run: Run, params: ChirpParams, ctx: RigContext) -> dict[str, dict
         power = np.sum(np.abs(per_period[a]) ** 2, axis=0) * np.sum(np.abs(reference) ** 2, axis=0)
         return np.asarray(np.abs(cross(a)) ** 2 / power)
 
+    sweeps = len(sweep_labels(params))
     tables = {}
     for name, (u, y, _, _) in FRFS.items():
         h = cross(y) / cross(u)
-        each = per_period[y] / per_period[u]
-        count = each.shape[0]
-        spread = np.sqrt(np.sum(np.abs(each - each.mean(axis=0)) ** 2, axis=0) / (count - 1) / count)
+        # The band: the spread of the sweeps' own estimates. Each sweep plays its own realization, so
+        # the nonlinear distortion, the same in every period of a sweep, differs between sweeps like noise.
+        each = np.array([_sweep_frf(per_period, u, y, k, params.periods) for k in range(sweeps)])
+        spread = np.sqrt(np.sum(np.abs(each - each.mean(axis=0)) ** 2, axis=0) / (sweeps - 1) / sweeps)
         relative = spread / np.abs(h)
         tables[name] = {
             "freq_hz": lines_hz,
@@ -343,6 +379,15 @@ def frf_tables(run: Run, params: ChirpParams, ctx: RigContext) -> dict[str, dict
             "phase_std_deg": np.degrees(relative),
         }
     return tables
+
+
+def _sweep_frf(per_period: dict[str, np.ndarray], u: str, y: str, sweep: int, periods: int) -> np.ndarray:
+    """One sweep's estimate Σ R̄·Y / Σ R̄·U over its periods (rows sweep·periods … of `per_period`)."""
+    rows = slice(sweep * periods, (sweep + 1) * periods)
+    reference = np.conj(per_period["reference"][rows])
+    return np.asarray(
+        np.sum(reference * per_period[y][rows], axis=0) / np.sum(reference * per_period[u][rows], axis=0)
+    )
 
 
 def resonance(table: dict[str, np.ndarray], coherence_min: float) -> tuple[float, float, float] | None:
