@@ -4,9 +4,13 @@ The step, sine and low-speed ramp of the tracking experiments (their default par
 without compensation, with the model's feed-forward (`model.compensator`: friction by the model's law
 with its position terms, inertia, the transmission's twist, the kinematic error), and with the model's
 friction deliberately off by each of `friction_errors` (−20 % and +20 %), one after the other, so the
-variants meet the same bench in the same state. Each is preceded by a hold at the start position whose
-last 50 ms give the zero of its angles, so an earlier variant's residual stick does not count against a
-later one.
+variants meet the same bench in the same state. Each is preceded by an approach (the motor backs off by
+`approach_rad` and returns, without feed-forward) and a hold at the start position. Every
+variant's error is measured from the same zero, the run's (taken at rest before the program, as the
+tracking experiments take it): where friction leaves a gear at rest is anywhere within a band, and a zero
+taken at each variant's hold carried that variant's stuck twist into all of its error (after a warm-up it
+made the ramp's `on` 2.5× worse than `on_no_temperature`, the feed-forward no worse). From the common zero
+an earlier variant's residual stick counts only until the motion breaks it free.
 
 Per motion: the RMS of the load's tracking error θ_l − r·θ_sp (sine: after the first period; ramp: after
 `skip_s` in each direction, lag included) off and on, `rms_error_<motion>_<variant>_rad`, and for the sine
@@ -26,6 +30,15 @@ carry the law, and a rig that records `temp_gear` plays their friction at the ge
 temperature (`model.compensator`); `compare_temperature` (default on) adds the variant
 `on_no_temperature`, the same feed-forward with the friction left at T_ref, and the metric
 `temperature_gain_<motion>`: its RMS error over that of `on` (> 1: the measured temperature helps).
+
+The approach and repeats: where friction leaves a gear at rest carries from one variant into the next,
+and a sine's stick phases keep it, so two plays of the same feed-forward differed (on the seed held at
+T_ref, where `on` and `on_no_temperature` plan the same, their sine RMS by 13 %, the same in six repeats:
+`on` always followed `off`). The approach drags the gear into the same state before every variant (that
+null then reads 1.000 ± 0.002). `repeats` plays every motion's variants that many times, each time in an
+order rotated by one; the figures pool the repeats (the RMS of their RMS, the mean of the rest), and with
+two or more `temperature_gain_<motion>_std` gives the spread of the repeats' own ratios as the σ of their
+mean.
 
 It needs a model file (`--set model=FILE`): on a simulated rig, one fitted (`hdrig fit`) on a campaign
 recorded on that rig, not the plant's own parameters. It is not part of the campaign for that reason.
@@ -48,7 +61,6 @@ from rig.experiments.base import Experiment, ExperimentParams, Results, RigConte
 from rig.experiments.plots import new_figure, save_figure
 from rig.experiments.tracking import (
     STEP_LABELS,
-    ZERO_WINDOW_S,
     Ramp,
     RampParams,
     Sine,
@@ -56,6 +68,7 @@ from rig.experiments.tracking import (
     Step,
     StepParams,
     detrended,
+    output_track,
     step_metrics,
 )
 from rig.interface import ControlMode, Segment
@@ -93,6 +106,20 @@ class CompensationParams(ExperimentParams):
         description="smoothing of the planned twist (kinks, friction flips) [s]",
     )
     hold_s: float = Field(default=0.5, ge=0.1, le=10, description="hold at the start before each variant [s]")
+    approach_rad: float = Field(
+        default=2.0,
+        ge=0,
+        le=50,
+        description="before each variant's hold the motor backs off this far and returns, without"
+        " feed-forward, so that every variant starts from the same side [rad]",
+    )
+    repeats: int = Field(
+        default=1,
+        ge=1,
+        le=8,
+        description="times each motion's variants are played, each time in an order rotated by one; the"
+        " figures pool the repeats, and the temperature gain gives its spread over them",
+    )
     compare_temperature: bool = Field(
         default=True,
         description="with a model whose thermal law has beta_T ≠ 0: also play the compensation without the"
@@ -122,6 +149,8 @@ class Variant:
 
 
 NO_TEMPERATURE = "on_no_temperature"
+APPROACH_S = 1.0
+"""Time of the approach before each variant's hold (`approach_rad`) [s]."""
 
 
 def has_thermal_law(params: CompensationParams) -> bool:
@@ -140,12 +169,25 @@ def variants(params: CompensationParams) -> list[Variant]:
     return out
 
 
-def _hold_label(motion: str, variant: Variant) -> str:
-    return f"{motion}-{variant.tag}-hold"
+def _prefix(motion: str, variant: Variant, repeat: int) -> str:
+    """Labels' start for one play of a variant: `sine-on`, then `sine-on-r2`, ... for the repeats."""
+    return f"{motion}-{variant.tag}" + (f"-r{repeat + 1}" if repeat else "")
 
 
-def _motion_labels(motion: str, variant: Variant, ctx: RigContext) -> list[str]:
-    return [f"{motion}-{variant.tag}-{seg.label}" for seg in _motion_segments(motion, ctx)]
+def _hold_label(motion: str, variant: Variant, repeat: int = 0) -> str:
+    return f"{_prefix(motion, variant, repeat)}-hold"
+
+
+def _motion_labels(motion: str, variant: Variant, ctx: RigContext, repeat: int = 0) -> list[str]:
+    return [f"{_prefix(motion, variant, repeat)}-{seg.label}" for seg in _motion_segments(motion, ctx)]
+
+
+def _play_order(params: CompensationParams, repeat: int) -> list[Variant]:
+    """The variants of one repeat in the order played: rotated by one per repeat, so that no variant
+    always follows the same other (what the gear was left in by the variant before carries over)."""
+    every = variants(params)
+    shift = repeat % len(every)
+    return every[shift:] + every[:shift]
 
 
 def _motion_segments(motion: str, ctx: RigContext) -> list[Segment]:
@@ -190,42 +232,61 @@ class Compensation(Experiment):
                 f" is not the rig's {ctx.gear_ratio}"
             )
         hold = np.full(ctx.cycles(params.hold_s), ctx.theta_m0)
+        back = np.arange(ctx.cycles(APPROACH_S)) / ctx.cycles(APPROACH_S)
+        approach = ctx.theta_m0 - params.approach_rad * (1 - np.cos(2 * np.pi * back)) / 2
         program = []
         for motion in MOTIONS:
             pieces = _motion_segments(motion, ctx)
             setpoints = np.concatenate([hold, *[seg.setpoint for seg in pieces]])
             bounds = np.cumsum([0, hold.shape[0], *[seg.cycles for seg in pieces]])
-            for variant in variants(params):
-                track = (
-                    None if variant.friction_scale is None else _track(model, variant, setpoints, params, ctx)
-                )
-                labels = [_hold_label(motion, variant), *_motion_labels(motion, variant, ctx)]
-                for i, label in enumerate(labels):
-                    part = None if track is None else track.part(int(bounds[i]), int(bounds[i + 1]))
-                    program.append(
-                        Segment(ControlMode.POSITION, setpoints[bounds[i] : bounds[i + 1]], 0.0, label, part)
-                    )
+            tracks = {
+                v.tag: None if v.friction_scale is None else _track(model, v, setpoints, params, ctx)
+                for v in variants(params)
+            }
+            for repeat in range(params.repeats):
+                for variant in _play_order(params, repeat):
+                    track = tracks[variant.tag]
+                    if params.approach_rad > 0:
+                        label = f"{_prefix(motion, variant, repeat)}-approach"
+                        program.append(Segment(ControlMode.POSITION, approach, 0.0, label))
+                    labels = [
+                        _hold_label(motion, variant, repeat),
+                        *_motion_labels(motion, variant, ctx, repeat),
+                    ]
+                    for i, label in enumerate(labels):
+                        part = None if track is None else track.part(int(bounds[i]), int(bounds[i + 1]))
+                        program.append(
+                            Segment(
+                                ControlMode.POSITION, setpoints[bounds[i] : bounds[i + 1]], 0.0, label, part
+                            )
+                        )
         return program
 
     # --- analysis ----------------------------------------------------------------------------------------
 
     @staticmethod
-    def _error(
-        run: Run, ctx: RigContext, motion: str, variant: Variant, label: str
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(time since the segment's start [s], θ_l − r·θ_sp [rad]), zeroed at the end of its hold."""
-        hold = segment_rows(run, _hold_label(motion, variant))
-        zero = slice(max(hold.start, hold.stop - ctx.cycles(ZERO_WINDOW_S)), hold.stop)
-        theta_l0 = float(np.mean(run["theta_l"][zero]))
-        rows = segment_rows(run, label)
-        t = run.t[rows]
-        error = (run["theta_l"][rows] - theta_l0) - ctx.gear_ratio * (run["setpoint"][rows] - ctx.theta_m0)
-        return t - t[0], error
+    def _error(run: Run, ctx: RigContext, label: str) -> tuple[np.ndarray, np.ndarray]:
+        """(time since the segment's start [s], θ_l − r·θ_sp [rad]) from the run's zero (module docstring)."""
+        track = output_track(run, ctx, segment_rows(run, label))
+        return track.t_s, track.load - track.setpoint
 
-    def _figures(self, run: Run, ctx: RigContext, motion: str, variant: Variant) -> dict[str, float]:
-        labels = _motion_labels(motion, variant, ctx)
+    def _figures(
+        self, run: Run, ctx: RigContext, motion: str, variant: Variant, repeats: int
+    ) -> dict[str, float]:
+        """A variant's figures pooled over its repeats (RMS of the RMS, means of the rest); `rms_<k>` each
+        repeat's own RMS."""
+        each = [self._play_figures(run, ctx, motion, variant, k) for k in range(repeats)]
+        pooled = {key: float(np.mean([f[key] for f in each])) for key in each[0] if key != "rms"}
+        pooled["rms"] = float(np.sqrt(np.mean([f["rms"] ** 2 for f in each])))
+        pooled.update({f"rms_{k}": f["rms"] for k, f in enumerate(each)})
+        return pooled
+
+    def _play_figures(
+        self, run: Run, ctx: RigContext, motion: str, variant: Variant, repeat: int
+    ) -> dict[str, float]:
+        labels = _motion_labels(motion, variant, ctx, repeat)
         if motion == "sine":
-            t, e = self._error(run, ctx, motion, variant, labels[0])
+            t, e = self._error(run, ctx, labels[0])
             sine = MOTION_PARAMS["sine"]
             assert isinstance(sine, SineParams)
             keep = t >= sine.skip_periods / sine.freq_hz
@@ -235,20 +296,20 @@ class Compensation(Experiment):
             assert isinstance(ramp, RampParams)
             rms, pp = [], []
             for label in labels:
-                t, e = self._error(run, ctx, motion, variant, label)
+                t, e = self._error(run, ctx, label)
                 keep = t >= ramp.skip_s
                 rms.append(np.mean(e[keep] ** 2))
                 pp.append(np.ptp(detrended(t[keep], e[keep])))
             return {"rms": float(np.sqrt(np.mean(rms))), "stick_slip": float(np.mean(pp))}
-        errors = np.concatenate([self._error(run, ctx, motion, variant, label)[1] for label in labels])
+        errors = np.concatenate([self._error(run, ctx, label)[1] for label in labels])
         figures = {"rms": float(np.sqrt(np.mean(errors**2)))}
         step = MOTION_PARAMS["step"]
         assert isinstance(step, StepParams)
         steps = []
         for label in labels:
-            if label.removeprefix(f"{motion}-{variant.tag}-") not in STEP_LABELS:
+            if label.removeprefix(f"{_prefix(motion, variant, repeat)}-") not in STEP_LABELS:
                 continue
-            t, e = self._error(run, ctx, motion, variant, label)
+            t, e = self._error(run, ctx, label)
             rows = segment_rows(run, label)
             target = ctx.gear_ratio * (run["setpoint"][rows] - ctx.theta_m0)
             before = ctx.gear_ratio * (run["setpoint"][rows.start - 1] - ctx.theta_m0)
@@ -271,7 +332,7 @@ class Compensation(Experiment):
             "stick_slip_pp_rad": [],
         }
         for index, motion in enumerate(MOTIONS):
-            figures = {v.tag: self._figures(run, ctx, motion, v) for v in variants(params)}
+            figures = {v.tag: self._figures(run, ctx, motion, v, params.repeats) for v in variants(params)}
             off = figures["off"]
             for variant in variants(params):
                 got = figures[variant.tag]
@@ -293,6 +354,10 @@ class Compensation(Experiment):
                 if variant.tag == NO_TEMPERATURE:
                     # What the measured temperature buys: the error without it over the error with it.
                     metrics[f"temperature_gain_{motion}"] = got["rms"] / figures["on"]["rms"]
+                    if params.repeats > 1:  # the spread of the repeats' own ratios, as σ of their mean
+                        ratios = [got[f"rms_{k}"] / figures["on"][f"rms_{k}"] for k in range(params.repeats)]
+                        spread = float(np.std(ratios, ddof=1) / np.sqrt(params.repeats))
+                        metrics[f"temperature_gain_{motion}_std"] = spread
                 if got["rms"] > off["rms"]:
                     notes.append(
                         f"{motion}, {variant.tag}: RMS error {got['rms']:.4g} rad is worse than without"
@@ -332,7 +397,7 @@ class Compensation(Experiment):
                 labels = _motion_labels(motion, variant, ctx)
                 t_parts, e_parts, offset = [], [], 0.0
                 for label in labels:
-                    t, e = self._error(run, ctx, motion, variant, label)
+                    t, e = self._error(run, ctx, label)
                     t_parts.append(t + offset)
                     e_parts.append(e)
                     offset += t[-1] + 1.0 / ctx.rate_hz
