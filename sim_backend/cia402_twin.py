@@ -533,12 +533,14 @@ class Cia402Twin:
                 follower.before_step()
             self._step(self._cycles_per_sync())
             self._sync_count += 1  # after the step: a SYNC counted is one whose plant time has passed
-            self.measured.record(taken_s, self._truths())
             if self.on_sample is not None:
                 self.on_sample(self.last_sample)
             self._publish()
             if operational:
                 self._send_tpdos()
+            # The DAQ's state of this SYNC, after the answer: its sensors' readings (~15 µs) are the DAQ
+            # board's work, not the drive's, and the master waits for the drive's answer alone.
+            self.measured.record(taken_s, self._truths())
         for follower in self.followers:
             follower.after_step()
 
