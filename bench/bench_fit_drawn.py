@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hdrig_testing.independent_batch import BatchRig
 from hdrig_testing.independent_plant import IndependentRig, lab_profile
 from model.params import HarmonicDriveModel, load_model
 from model.run import Run
@@ -83,23 +84,50 @@ def profile(truth: HarmonicDriveModel, duration_s: float) -> tuple[np.ndarray, n
     return speed, load
 
 
-def record(truth: HarmonicDriveModel, duration_s: float, seed: int, cache: Path | None) -> Run:
-    path = None
-    if cache is not None:
-        cache.mkdir(parents=True, exist_ok=True)
-        key = abs(hash(tuple(get_values(truth, list(DRAWN)).values()))) % 10**10
-        path = cache / f"gear_{key}_{duration_s:g}s_{seed}.npz"
-        if path.exists():
-            data = np.load(path)
-            return Run({c: data[c] for c in COLUMNS}, {}).validate()
-    speed, load = profile(truth, duration_s)
-    run = IndependentRig(truth, drive="voltage", seed=seed).record(speed, load)
+def _cache_path(truth: HarmonicDriveModel, duration_s: float, seed: int, cache: Path, generator: str) -> Path:
+    cache.mkdir(parents=True, exist_ok=True)
+    key = abs(hash(tuple(get_values(truth, list(DRAWN)).values()))) % 10**10
+    suffix = "" if generator == "events" else f"_{generator}"  # the event rig's records keep their names
+    return cache / f"gear_{key}_{duration_s:g}s_{seed}{suffix}.npz"
+
+
+def _store(run: Run, path: Path | None) -> Run:
     cols = {c: run[c] for c in COLUMNS}
     if path is not None:
         partial = path.with_suffix(f".{os.getpid()}.npz")
         np.savez(partial, **cols)  # type: ignore[arg-type]
         os.replace(partial, path)  # whole or absent: another process may be reading the cache
     return Run(cols, {}).validate()
+
+
+def record(
+    truth: HarmonicDriveModel, duration_s: float, seed: int, cache: Path | None, generator: str = "events"
+) -> Run:
+    """The gear's record from the cache, else from the event-timed generator (the batch generator's
+    records are made for all gears at once by `record_batch`)."""
+    path = None if cache is None else _cache_path(truth, duration_s, seed, cache, generator)
+    if path is not None and path.exists():
+        data = np.load(path)
+        return Run({c: data[c] for c in COLUMNS}, {}).validate()
+    if generator != "events":
+        raise ValueError(f"no cached {generator} record for seed {seed}: run record_batch first")
+    speed, load = profile(truth, duration_s)
+    return _store(IndependentRig(truth, drive="voltage", seed=seed).record(speed, load), path)
+
+
+def record_batch(seeds: list[int], duration_s: float, cache: Path) -> None:
+    """The fixed-step batch generator's records of the drawn gears not yet cached, all in one pass."""
+    truths = {s: draw_gear(s) for s in seeds}
+    todo = [s for s in seeds if not _cache_path(truths[s], duration_s, s, cache, "batch").exists()]
+    if not todo:
+        return
+    speed, load = profile(truths[todo[0]], duration_s)  # the load step scales with K_m/r: the seed's
+    for s in todo:
+        if not np.array_equal(profile(truths[s], duration_s)[1], load):
+            raise ValueError(f"gear {s}'s load profile differs: the batch plays one profile for all")
+    runs = BatchRig([truths[s] for s in todo], todo).record(speed, load)
+    for s, run in zip(todo, runs, strict=True):
+        _store(run, _cache_path(truths[s], duration_s, s, cache, "batch"))
 
 
 @dataclass
@@ -113,10 +141,15 @@ class GearResult:
 
 
 def fit_gear(
-    label: str, truth: HarmonicDriveModel, duration_s: float, seed: int, cache: Path | None
+    label: str,
+    truth: HarmonicDriveModel,
+    duration_s: float,
+    seed: int,
+    cache: Path | None,
+    generator: str = "events",
 ) -> GearResult:
     t0 = time.perf_counter()
-    run = record(truth, duration_s, seed, cache)
+    run = record(truth, duration_s, seed, cache, generator)
     t1, c1 = time.perf_counter(), time.process_time()
     result = identify([run], load_model("seed"))
     t2, c2 = time.perf_counter(), time.process_time()
@@ -230,6 +263,15 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, default=Path("/tmp/hdrig_fit_drawn"), help="record cache")
     parser.add_argument("--no-cache", action="store_true")
     parser.add_argument("--from-logs", type=Path, nargs="+", help="summarize printed runs of this bench")
+    parser.add_argument("--only", type=int, nargs="+", help="these draw seeds instead of --seed/--gears")
+    parser.add_argument("--record-only", action="store_true", help="fill the record cache, fit nothing")
+    parser.add_argument(
+        "--generator",
+        choices=("events", "batch"),
+        default="events",
+        help="events: independent_plant, event-timed, per gear; batch: independent_batch, fixed step, all"
+        " drawn gears in one pass (needs the cache)",
+    )
     args = parser.parse_args()
     if args.from_logs:
         summary(from_logs(args.from_logs))
@@ -242,13 +284,27 @@ def main() -> None:
         gears = [fit_gear("issue gear", issue_gear(), args.duration, 1, cache)]
     else:
         gears = []
-        for i in range(args.gears):
-            seed = args.seed + i
-            gears.append(fit_gear(f"gear {seed}", draw_gear(seed), args.duration, seed, cache))
+        seeds = list(args.only or range(args.seed, args.seed + args.gears))
+        if args.generator == "batch":
+            if cache is None:
+                parser.error("--generator batch records through the cache: drop --no-cache")
+            t0 = time.perf_counter()
+            record_batch(seeds, args.duration, cache)
+            print(f"batch records of {len(seeds)} gears: {time.perf_counter() - t0:.0f} s", flush=True)
+        for seed in seeds:
+            if args.record_only:
+                t0 = time.perf_counter()
+                record(draw_gear(seed), args.duration, seed, cache, args.generator)
+                print(f"gear {seed}: recorded in {time.perf_counter() - t0:.0f} s", flush=True)
+                continue
+            gears.append(
+                fit_gear(f"gear {seed}", draw_gear(seed), args.duration, seed, cache, args.generator)
+            )
             print_gear(gears[-1])
     if args.case == "issue":
         print_gear(gears[0])
-    summary(gears)
+    if gears:
+        summary(gears)
 
 
 if __name__ == "__main__":

@@ -3,8 +3,13 @@
 Written from docs/MODEL.md's equations alone, with other numerics and another rig around them:
 
 - integration: scipy's `solve_ivp` (RK45, tight tolerances) over each control period, with stick and
-  breakaway located as events (ω crossing zero; |ψ| reaching the breakaway level) and the stuck shaft
-  held exactly (Karnopp's idea, but event-timed rather than a velocity band on a fixed step);
+  breakaway located as events (ω crossing zero; |ψ| reaching the breakaway level; a shaft breaking away
+  reaching its stick band's edge) and the stuck shaft held exactly (Karnopp's idea, but event-timed
+  rather than a velocity band on a fixed step). As docs/MODEL.md says, a shaft breaking away feels its
+  static level until its speed leaves the band, the moving law from there on: with a static level below
+  the moving one (static_factor < 1) the moving law at once would brake it back to zero at the instant
+  it broke loose, and the stick/slip events would repeat without time advancing (records of such gears
+  took hours);
 - sensors: a 14-bit motor encoder (not the sim rig's 17), a load encoder of 20 bits per output turn
   plus 3 µrad of noise, 10 mA of current noise;
 - control: its own velocity PI at 1 kHz on a filtered encoder difference, driving voltage or current,
@@ -92,6 +97,8 @@ class _Truth:
         st = model.stribeck
         self.f_st, self.omega_st = (st.f_st, st.omega_st) if st is not None else (0.0, 1.0)
         self.rigid = self.K_s is None
+        # stick bands [rad/s]: a shaft breaking away feels its static level until it leaves its band
+        self.band = (model.numerics.omega_stick_m, model.numerics.omega_stick_l)
         self.thermal = model.thermal
         # The gear's and the winding's temperatures [°C]: stepped once per control period by the rig.
         th = self.thermal
@@ -188,6 +195,8 @@ class IndependentRig:
         self.rate_hz = rate_hz
         self.rng = np.random.default_rng(seed)
         self.encoder_step = encoder_step  # motor position quantum [rad] (a linear axis: its own unit)
+        self.loose = [False, False]  # per side: broken loose, still inside its stick band
+        self.events_located = 0  # stick/slip events over the record (a count for tests, not a timing)
 
     # ---- the plant between two control instants ------------------------------------------------------
 
@@ -207,7 +216,7 @@ class IndependentRig:
             if not mode[side]:
                 self._switch(side, y, mode, command, tau_ext, located=False)
         while t < t_end - 1e-12:
-            events = self._events(mode, command, tau_ext)
+            events, sides = self._events(mode, command, tau_ext)
             sol = solve_ivp(
                 lambda _t, s: self._rhs(s, mode, command, tau_ext),
                 (t, t_end),
@@ -220,11 +229,15 @@ class IndependentRig:
             )
             y = sol.y[:, -1].copy()
             t = float(sol.t[-1])
-            fired = [i for i, te in enumerate(sol.t_events) if te.size]
+            fired = [sides[i] for i, te in enumerate(sol.t_events) if te.size]
             if not fired:
                 break
-            for side in fired:
-                self._switch(side, y, mode, command, tau_ext)
+            self.events_located += len(fired)
+            for side, kind in fired:
+                if kind == "band":  # out of the band: the moving law from here on
+                    self.loose[side] = False
+                else:
+                    self._switch(side, y, mode, command, tau_ext)
         return y
 
     def _psi(self, y: np.ndarray, command: float, tau_ext: float) -> tuple[float, float]:
@@ -237,14 +250,24 @@ class IndependentRig:
         return t_m - p.r * ts, ts - tau_ext
 
     def _friction(self, y: np.ndarray, mode: list[float], psi: tuple[float, float]) -> tuple[float, float]:
+        """Stuck: what balances ψ; broken loose inside the band: the static level; else the moving law."""
         p = self.p
-        f_m = p.motor_moving(y[0], y[1], mode[0]) if mode[0] else psi[0]
+        if not mode[0]:
+            f_m = psi[0]
+        elif self.loose[0]:
+            f_m = mode[0] * self._static(0, y)  # (rigid: the load's static level is in it)
+        else:
+            f_m = p.motor_moving(y[0], y[1], mode[0])
+            if p.rigid:
+                f_m += p.r * (mode[0] * p.f_cl + p.b_l * p.r * y[1])
         if p.rigid:
-            w_l = p.r * y[1]
-            if mode[0]:
-                f_m += p.r * (mode[0] * p.f_cl + p.b_l * w_l)
             return f_m, 0.0
-        f_l = mode[1] * p.f_cl + p.b_l * y[3] if mode[1] else psi[1]
+        if not mode[1]:
+            f_l = psi[1]
+        elif self.loose[1]:
+            f_l = mode[1] * p.f_sl
+        else:
+            f_l = mode[1] * p.f_cl + p.b_l * y[3]
         return f_m, f_l
 
     def _rhs(self, y: np.ndarray, mode: list[float], command: float, tau_ext: float) -> np.ndarray:
@@ -264,20 +287,38 @@ class IndependentRig:
             return p.motor_static(y[0]) + (p.r * p.f_sl if p.rigid else 0.0)
         return p.f_sl
 
-    def _events(self, mode: list[float], command: float, tau_ext: float) -> list[Any]:
-        """solve_ivp events: a sliding side's speed crossing zero against its motion; a stuck side's
-        net torque reaching its breakaway level."""
+    def _events(
+        self, mode: list[float], command: float, tau_ext: float
+    ) -> tuple[list[Any], list[tuple[int, str]]]:
+        """solve_ivp events and, per event, (side, kind): a sliding side's speed crossing zero against
+        its motion ("stop"); a side broken loose leaving its stick band ("band"); a stuck side's net
+        torque reaching its breakaway level ("break")."""
         out: list[Any] = []
+        sides: list[tuple[int, str]] = []
         for side in range(1 if self.p.rigid else 2):
             speed = 1 if side == 0 else 3
             event: Any
+            leave: Any
+            if mode[side] and self.loose[side]:
+
+                def leave(
+                    _t: float, s: np.ndarray, speed: int = speed, edge: float = self.p.band[side]
+                ) -> float:
+                    return abs(float(s[speed])) - edge
+
+                leave.direction = 1
+                leave.terminal = True
+                out.append(leave)
+                sides.append((side, "band"))
             if mode[side]:
 
                 def event(_t: float, s: np.ndarray, speed: int = speed) -> float:
                     return float(s[speed])
 
                 event.direction = -mode[side]
+                sides.append((side, "stop"))
             else:
+                sides.append((side, "break"))
 
                 def event(_t: float, s: np.ndarray, side: int = side) -> float:
                     return abs(self._psi(s, command, tau_ext)[side]) - self._static(side, s)
@@ -285,7 +326,7 @@ class IndependentRig:
                 event.direction = 1
             event.terminal = True
             out.append(event)
-        return out
+        return out, sides
 
     def _switch(
         self,
@@ -296,14 +337,17 @@ class IndependentRig:
         tau_ext: float,
         located: bool = True,
     ) -> None:
-        """At a located event: a sliding side stops and sticks or reverses; a stuck side breaks away."""
+        """At a located event: a sliding side stops and sticks or reverses; a stuck side breaks away
+        (and feels its static level until it leaves its band)."""
         speed = 1 if side == 0 else 3
         psi = self._psi(y, command, tau_ext)[side]
         if not mode[side] and located:  # the breakaway event: |ψ| reached the static level
             mode[side] = math.copysign(1.0, psi)
+            self.loose[side] = True
             return
         y[speed] = 0.0
         mode[side] = 0.0 if abs(psi) <= self._static(side, y) else math.copysign(1.0, psi)
+        self.loose[side] = bool(mode[side])
 
     # ---- the rig around it -----------------------------------------------------------------------------
 
@@ -314,6 +358,7 @@ class IndependentRig:
         n = len(speed_rad_s)
         y = np.zeros(2 if p.rigid else 4)
         mode = [0.0, 0.0]
+        self.loose = [False, False]
         q_m = self.encoder_step
         q_l = 2 * math.pi / 2**LOAD_ENCODER_BITS
         cols = {
