@@ -90,7 +90,15 @@ from rig.safety import (
 )
 from sim_backend.daq_twin import PlantStateSource
 from sim_backend.inprocess import TemperatureProbes, TorqueTransducers
-from sim_backend.simulated_drive import T_TEMP_GEAR, T_TEMP_MOTOR, SimulatedDrive
+from sim_backend.simulated_drive import (
+    T_F_L,
+    T_F_M,
+    T_T_S,
+    T_TAU_EXT,
+    T_TEMP_GEAR,
+    T_TEMP_MOTOR,
+    SimulatedDrive,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -108,7 +116,6 @@ EMCY_FOR_ABORT: Final = {
 NMT_OPERATIONAL, NMT_STOPPED = "OPERATIONAL", "STOPPED"
 AMBIENT_C: Final = 25.0
 """The temperatures a plant without a thermal section reads: a room's, steady [°C]."""
-_AMBIENT_ROWS: Final = np.full((2, 1), AMBIENT_C)  # winding and gear (TEMPERATURE_COLUMNS), one cycle
 LOAD_COB_ID: Final = 0x6E0
 """A sim-only frame (unused in CiA 301's predefined set): the load torque τ_ext [N·m] as a little-endian
 float64, applied from the next SYNC. A host in another process sets the load with it."""
@@ -191,12 +198,17 @@ class Cia402Twin:
         self.drive.record_truth(True)  # the shaft torque and temperatures the DAQ's analog inputs read
         self.measured = PlantStateSource(self.plant)
         """The plant's state after each SYNC, by the host time the SYNC was taken: a DAQ twin's source."""
-        # The bench's sensors as the simulated rig has them (its plant is the gear's own: no load rotor).
-        self._transducers = TorqueTransducers(config, model, model)
-        self._probes: TemperatureProbes | None = None  # from the first reading's temperatures
         # Load the compiled loop now, not on the first SYNC: a master would wait for it and time out.
         SimulatedDrive(Plant(model), config).run(ControlMode.CURRENT, np.zeros(1), np.zeros(1), 0.0)
         self.period_s = 1.0 / config.sample_rate_hz
+        # The bench's sensors as the simulated rig has them (its plant is the gear's own: no load rotor).
+        self._transducers = TorqueTransducers(config, model, model)
+        probes = TemperatureProbes(config, np.full(2, AMBIENT_C))
+        lag_s = config.sensors.temperature_lag_s
+        self._probe_alpha = 1.0 - math.exp(-self.period_s / lag_s) if lag_s > 0 else 1.0
+        self._probe_c: list[float] | None = None  # winding, gear: from the first reading's temperatures
+        self._torque_noise = _NoiseStream(self._transducers.rng)
+        self._temp_noise = _NoiseStream(probes.rng)
         self.tau_ext_nm = 0.0
         """Load torque on the output during the next cycles [N·m], as the rig's tau_ext."""
         self.t_s = 0.0
@@ -558,18 +570,30 @@ class Cia402Twin:
         assert truth is not None  # kept on from the start, emptied here
         if not truth:
             return 0.0, 0.0, AMBIENT_C, AMBIENT_C
-        cycle = truth[-1][-1:]
+        row = truth[-1][-1].tolist()  # plain floats: a SYNC's one reading costs less without arrays
         truth.clear()
-        torques = self._transducers.read(cycle)
-        plant_c = cycle[:, [T_TEMP_MOTOR, T_TEMP_GEAR]].T if self.model.thermal is not None else _AMBIENT_ROWS
-        if self._probes is None:
-            self._probes = TemperatureProbes(self.config, plant_c[:, 0])
-        temps = self._probes.read(plant_c, self.period_s)
+        # TorqueTransducers.truth's definitions, one cycle at a time (tests/test_canopen_dyno.py checks
+        # the two agree), with its constants and its noise stream.
+        transducers = self._transducers
+        t_s, f_l = row[T_T_S], row[T_F_L]
+        tau_in = transducers.r * t_s + row[T_F_M]
+        tau_out = t_s - f_l - transducers.gear_share * (t_s - f_l - row[T_TAU_EXT])
+        plant_c = (
+            (row[T_TEMP_MOTOR], row[T_TEMP_GEAR]) if self.model.thermal is not None else (AMBIENT_C,) * 2
+        )
+        if self._probe_c is None:
+            self._probe_c = list(plant_c)
+        probe = self._probe_c  # TemperatureProbes' first-order lag, a cycle at a time
+        for i in (0, 1):
+            probe[i] += self._probe_alpha * (plant_c[i] - probe[i])
+        noise_nm, noise_c = transducers.noise_nm, self.config.sensors.temperature_noise_c
+        torque_noise = self._torque_noise.take(2) if noise_nm > 0 else (0.0, 0.0)
+        temp_noise = self._temp_noise.take(2) if noise_c > 0 else (0.0, 0.0)
         return (
-            float(torques["tau_in"][0]),
-            float(torques["tau_out"][0]),
-            float(temps["temp_gear"][0]),
-            float(temps["temp_motor"][0]),
+            tau_in + noise_nm * torque_noise[0],
+            tau_out + noise_nm * torque_noise[1],
+            probe[1] + noise_c * temp_noise[1],
+            probe[0] + noise_c * temp_noise[0],
         )
 
     def _cycles_per_sync(self) -> int:
@@ -875,6 +899,24 @@ class Cia402Twin:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _NoiseStream:
+    """Standard normal draws from a generator, taken a few at a time from blocks drawn ahead (one call per
+    thousand SYNCs instead of one per SYNC)."""
+
+    BLOCK: Final = 2048
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self._rng = rng
+        self._drawn: list[float] = []
+        self._next = 0
+
+    def take(self, n: int) -> list[float]:
+        if self._next + n > len(self._drawn):
+            self._drawn, self._next = self._rng.standard_normal(self.BLOCK).tolist(), 0
+        self._next += n
+        return self._drawn[self._next - n : self._next]
 
 
 def _saturate(value: int, bound: int) -> int:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
@@ -137,13 +136,8 @@ class TemperatureProbes:
         n = plant_c.shape[1]
         for i, name in enumerate(TEMPERATURE_COLUMNS):
             truth = plant_c[i]
-            if self.lag_s > 0.0 and n == 1:  # a reading a cycle (the CANopen twin's): the recursion itself
-                alpha = 1.0 - math.exp(-period_s / self.lag_s)
-                seen = self.state_c[i] + alpha * (truth - self.state_c[i])
-            elif self.lag_s > 0.0 and n:
-                from scipy.signal import (
-                    lfilter,  # here: the twins' process reads a cycle at a time without it
-                )
+            if self.lag_s > 0.0 and n:
+                from scipy.signal import lfilter  # here, not above: the twins' process imports this module
 
                 alpha = 1.0 - np.exp(-period_s / self.lag_s)  # seen[k] = seen[k-1] + α·(truth[k] − seen[k-1])
                 seen, _ = lfilter([alpha], [1.0, alpha - 1.0], truth, zi=[(1.0 - alpha) * self.state_c[i]])

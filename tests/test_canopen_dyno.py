@@ -33,6 +33,7 @@ from rig.store.runs import RunStore
 from sim_backend.cia402_twin import AMBIENT_C, TWIN_EDS, Cia402Twin, LoadTwin
 from sim_backend.inprocess import TORQUE_COLUMNS as TRANSDUCERS
 from sim_backend.inprocess import SimRig
+from sim_backend.simulated_drive import TRUTH_COLUMNS
 from sim_backend.virtual_bus import VirtualCanRig
 
 pytestmark = pytest.mark.usefixtures("quiet_heap")
@@ -284,6 +285,20 @@ def test_the_transducers_and_probes_are_recorded_from_the_plant(dyno: VirtualCan
         assert np.mean(run[probe][held]) == pytest.approx(AMBIENT_C, abs=temp_tol)
         assert 0.5 * sensors.temperature_noise_c < np.std(run[probe][held]) < sensors.temperature_noise_c
     assert dyno.daq_tally.out_of_range == 0
+
+
+def test_the_twins_transducer_readings_are_the_simulated_benchs_definitions(dyno: VirtualCanRig) -> None:
+    """The twin computes a SYNC's readings with plain floats: the same numbers as TorqueTransducers.truth
+    (noise off), for rows of any values."""
+    twin = dyno.twin
+    assert twin is not None and twin.drive.truth is not None
+    twin._transducers.noise_nm = 0.0
+    rows = np.random.default_rng(7).normal(size=(20, len(TRUTH_COLUMNS))) * 10
+    expected = twin._transducers.truth(rows)
+    for k, row in enumerate(rows):
+        twin.drive.truth.append(row[None, :])
+        tau_in, tau_out, _, _ = twin._truths()
+        assert (tau_in, tau_out) == pytest.approx((expected["tau_in"][k], expected["tau_out"][k]), rel=1e-12)
 
 
 def test_the_twins_transducers_read_as_the_simulated_benchs_for_the_same_motion(
