@@ -33,6 +33,8 @@ from rig.analysis.fit.parameters import get_values, with_values
 from rig.config import load_rig_config
 from rig.core import actions
 from rig.experiments import CAMPAIGN_ORDER
+from rig.experiments.base import RigContext
+from rig.experiments.compensation import Compensation, CompensationParams
 from rig.interface import ControlMode, RigError, Segment, open_rig
 from rig.store.runs import RunStore
 
@@ -181,6 +183,20 @@ def test_compensation_without_a_model_is_a_one_line_error() -> None:
     assert "\n" not in str(info.value)
     with pytest.raises(UserInputError, match="no-such-model"):
         actions.plan_run("compensation", {"model": "no-such-model.yaml"})
+
+
+def test_an_approach_that_would_leave_the_stroke_is_refused_before_anything_moves(
+    seed: HarmonicDriveModel,
+) -> None:
+    config = load_rig_config("sim")
+    r = seed.mechanics.r
+    # The output starts 0.01 rad above the stroke's low end; the approach backs off 2 rad (0.02 rad out).
+    ctx = RigContext(config, r, seed.motor.K_m, (config.limits.travel_min_out_rad + 0.01) / r)
+    params = CompensationParams(model="seed", friction_errors=[])
+    with pytest.raises(UserInputError, match="field 'approach_rad'") as info:
+        Compensation().program(params, ctx)
+    assert "\n" not in str(info.value)
+    assert Compensation().program(params.model_copy(update={"approach_rad": 0.5}), ctx)
 
 
 def test_the_campaign_still_plays_the_articles_eight() -> None:

@@ -67,6 +67,7 @@ from rig.experiments.tracking import (
     SineParams,
     Step,
     StepParams,
+    check_stroke,
     detrended,
     output_track,
     step_metrics,
@@ -234,6 +235,7 @@ class Compensation(Experiment):
         hold = np.full(ctx.cycles(params.hold_s), ctx.theta_m0)
         back = np.arange(ctx.cycles(APPROACH_S)) / ctx.cycles(APPROACH_S)
         approach = ctx.theta_m0 - params.approach_rad * (1 - np.cos(2 * np.pi * back)) / 2
+        check_stroke(ctx, -ctx.gear_ratio * params.approach_rad, 0.0, self.name, "approach_rad")
         program = []
         for motion in MOTIONS:
             pieces = _motion_segments(motion, ctx)
