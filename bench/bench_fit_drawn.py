@@ -17,6 +17,14 @@ never |error| > 10σ, each fit ≤ 20 s wall (docs/BENCHMARKS.md).
 
 `--case issue` fits the issue's own gear (J_m ×1.3, s3 ×0.8, K_s ×0.7, J_l ×1.2, f_cl 2.16 N·m) instead.
 Records are cached under `--cache` (the generator takes longer than the fit), keyed by gear and seed.
+
+Two generators (`--generator`): `events`, the event-timed `independent_plant` one gear at a time (20–45 s
+a record on a gear with static_factor ≥ 1 at load 4–6; on a gear below 1 the motor creeps through its
+stick band in a cycle of a few tens of µs, each an event: 10 min and more); `batch`, the fixed-step
+`independent_batch`, every drawn gear in one pass (its records agree with the event-timed ones within a
+few encoder counts: tests/test_independent_batch.py), cached beside the event records under its own
+name. `--record-only` fills the cache and fits nothing (several processes can share the work with
+`--only`); `--from-logs` summarizes the gears several processes printed.
 """
 
 from __future__ import annotations
