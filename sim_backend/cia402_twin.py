@@ -550,8 +550,8 @@ class Cia402Twin:
             self._publish()
             if operational:
                 self._send_tpdos()
-            # The DAQ's state of this SYNC, after the answer: its sensors' readings (~15 µs) are the DAQ
-            # board's work, not the drive's, and the master waits for the drive's answer alone.
+            # The DAQ's state of this SYNC, after the answer is sent (in this process's bus; the child's hub
+            # sends it once this handler returns): its sensors' readings are the DAQ board's work.
             self.measured.record(taken_s, self._truths())
         for follower in self.followers:
             follower.after_step()
