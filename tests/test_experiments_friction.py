@@ -27,9 +27,9 @@ from model.params import HarmonicDriveModel, save_model
 from model.plant import Plant
 from model.run import Run
 from rig.config import load_rig_config
-from rig.experiments.base import segment_rows, segments_of
+from rig.experiments.base import RigContext, segment_rows, segments_of
 from rig.experiments.load_variation import LoadVariationParams, load_prefix
-from rig.experiments.position_friction import PositionFrictionParams
+from rig.experiments.position_friction import PositionFrictionParams, pass_program
 from rig.experiments.pulse import PulseParams, pulse_labels
 from rig.experiments.speed_sweep import SpeedSweepParams
 from rig.runner import RunOutcome, run_experiment
@@ -461,3 +461,17 @@ def test_no_load_torque_reads_speed_alone_on_a_gear_whose_friction_follows_posit
     assert centres[0] == centres[1]
     for way in ("torque_fwd_nm", "torque_bwd_nm"):
         np.testing.assert_allclose(curves[0][way], curves[1][way], rtol=0.01)
+
+
+def test_position_friction_passes_are_bounded_on_a_bench_that_turns_without_end() -> None:
+    """sim-dyno's stroke is ±10,000 rad at the output: half of it made passes of days (and gigabytes of
+    rows). A pass covers at most `max_pass_out_rad` at the output (one turn), the sim's stroke as before."""
+    params = PositionFrictionParams()
+    for rig, expected_out_rad in (("sim-dyno", 2 * math.pi), ("sim", (3.0 - 0.0) * params.travel_fraction)):
+        config = load_rig_config(rig)
+        r = 0.01
+        ctx = RigContext(config, r, 0.0302, 0.0)
+        assert config.limits.travel_max_out_rad == (10_000.0 if rig == "sim-dyno" else 3.0)
+        segments = pass_program(params, ctx)
+        travel_out_rad = r * params.speed_rad_s * segments[0].cycles / config.sample_rate_hz
+        assert travel_out_rad == pytest.approx(expected_out_rad, rel=1e-3), rig

@@ -43,6 +43,12 @@ class PositionFrictionParams(ExperimentParams):
     travel_fraction: float = Field(
         default=0.5, gt=0, le=1, description="share of the free stroke ahead of the start a pass covers [–]"
     )
+    max_pass_out_rad: float = Field(
+        default=2 * math.pi,
+        gt=0,
+        le=1000,
+        description="longest pass, at the output: one turn on a bench that turns without end [rad]",
+    )
     cycles: int = Field(default=1, ge=1, le=20, description="forward+backward pass pairs, averaged [–]")
     settle_s: float = Field(
         default=1.0, gt=0, le=10, description="time after each start or reversal left out of averages [s]"
@@ -66,6 +72,8 @@ class PositionFrictionParams(ExperimentParams):
 def pass_program(params: PositionFrictionParams, ctx: RigContext) -> list[Segment]:
     """`cycles` pairs of passes `pass<k>+` / `pass<k>-` over the same stretch, ending where they began."""
     room_m = (ctx.config.limits.travel_max_out_rad / ctx.gear_ratio - ctx.theta_m0) * params.travel_fraction
+    # A dynamometer bench's stroke is unbounded (±10,000 rad out): half of it was days of passes.
+    room_m = min(room_m, params.max_pass_out_rad / ctx.gear_ratio)
     duration_s = room_m / params.speed_rad_s
     if duration_s <= 2 * params.settle_s:
         raise ProgramError(
