@@ -30,7 +30,7 @@ window: the FRF stage's), f_sl (the load's breakaway is not in steady windows: h
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -100,15 +100,11 @@ def output_equation(runs: Sequence[Run], model: HarmonicDriveModel) -> Solved:
         )
         return out
     solved = stiffness_and_load_friction(sweep_parts([output_run(run) for run in used], model), model)
-    if "J_l" in solved.metrics:
-        solved.metrics["J_l_gear"] = solved.metrics.pop("J_l")
-        solved.metrics["J_l_gear_std"] = solved.metrics.pop("J_l_std")
-    solved.notes = [
+    source = (
         f"source {OUTPUT} (output transducer): mean T_s − F_l = tau_out + J_l·Δω_l/T, no motor friction"
-        f" and no load drive in it; {_gear_words(note)}"
-        for note in solved.notes
-    ]
-    return solved
+        " and no load drive in it"
+    )
+    return _told_by(solved, source, _gear_words)
 
 
 def _gear_words(note: str) -> str:
@@ -127,12 +123,17 @@ def input_equation(runs: Sequence[Run], model: HarmonicDriveModel, held: Held | 
         return out
     rotorless = with_values(model, {"J_m": NO_MOTOR_INERTIA_KGM2})
     solved = velocity_friction(sweep_parts([input_run(run) for run in used], rotorless), rotorless, held)
+    source = (
+        f"source {INPUT} (input transducer): tau_in − r·tau_out = F_m + r·F_l + r·J_l·Δω_l/T, no K_m, no J_m"
+    )
+    return _told_by(solved, source)
+
+
+def _told_by(solved: Solved, source: str, words: Callable[[str], str] = str) -> Solved:
+    """A stage's fit on a transducer's run told as the transducer's: the J_l fitted beside it is the
+    gear's own (`J_l_gear`), and each note opens with `source`."""
     if "J_l" in solved.metrics:
         solved.metrics["J_l_gear"] = solved.metrics.pop("J_l")
         solved.metrics["J_l_gear_std"] = solved.metrics.pop("J_l_std")
-    solved.notes = [
-        f"source {INPUT} (input transducer): tau_in − r·tau_out = F_m + r·F_l + r·J_l·Δω_l/T, no K_m, no J_m;"
-        f" {note}"
-        for note in solved.notes
-    ]
+    solved.notes = [f"{source}; {words(note)}" for note in solved.notes]
     return solved
