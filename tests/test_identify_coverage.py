@@ -13,6 +13,8 @@ inflation). The seeds are fixed: the outcome does not vary from run to run.
 
 from __future__ import annotations
 
+import math
+
 import campaign
 import numpy as np
 import pytest
@@ -22,9 +24,19 @@ from test_replay_continuous import FLOOR
 from model.params import HarmonicDriveModel
 from model.run import Run
 from rig.analysis.fit.parameters import get_values
-from rig.analysis.fit.trajectory import fit_trajectories, window_robust_covariance
+from rig.analysis.fit.trajectory import (
+    ParameterEstimate,
+    TrajectoryFit,
+    fit_trajectories,
+    window_robust_covariance,
+)
 from rig.analysis.identification.dynamics_stage import motor_constants
-from rig.analysis.identification.identify import JOINT_EXPERIMENTS, JOINT_WINDOW_S, disagreement_scales
+from rig.analysis.identification.identify import (
+    JOINT_EXPERIMENTS,
+    JOINT_WINDOW_S,
+    _sigma_backed_by_cost,
+    disagreement_scales,
+)
 from rig.config import load_rig_config
 from rig.runner import run_experiment
 from rig.store.runs import RunStore
@@ -167,3 +179,68 @@ def test_inertias_from_trajectories_of_ideal_sensors_are_unbiased(
     assert abs(error) <= max(3 * estimate.std_error, FLOOR * truth), (
         f"{name}: {100 * error / truth:+.4f} % at σ {100 * estimate.std_error / truth:.4f} %"
     )
+
+
+def _noise() -> np.ndarray:
+    noise = np.random.default_rng(3).standard_normal(1000)
+    noise[0] = 0.0
+    return noise
+
+
+NOISE_S = math.sqrt(float(_noise() @ _noise()) / (1000 - 1))
+"""s, the residual's per-row RMS at the optimum as the check computes it (1000 rows, 1 parameter)."""
+
+
+class _OneParameterCost:
+    """A stand-in for a TrajectoryProblem whose residual is fixed noise n plus g(x) on a row n is zero
+    on: the sum of squares is n·n + g(x)², so the rise from the optimum (g = 0) is g(x)² exactly."""
+
+    def __init__(self, g):
+        self.names = ["f_cl"]
+        self.noise = _noise()
+        self.g = g
+
+    def model_with(self, values):
+        return values
+
+    def residuals_of(self, model):
+        r = self.noise.copy()
+        r[0] = self.g(model["f_cl"])
+        return r
+
+
+def _checked(g, estimate: float, sigma: float):
+    problem = _OneParameterCost(g)
+    p = ParameterEstimate("f_cl", estimate, estimate, sigma, True)
+    fit = TrajectoryFit({"f_cl": estimate}, [p], 1.0, 1.0, 1000, profile_direction={"f_cl": {"f_cl": 1.0}})
+    fit.curvature_sigma = {"f_cl": sigma}  # white rows: the reported σ is the curvature's
+    notes: list = []
+    _sigma_backed_by_cost(problem, fit, notes)  # type: ignore[arg-type]
+    s = math.sqrt(float(problem.noise @ problem.noise) / (1000 - 1))
+    return p, notes, s
+
+
+def test_a_sigma_the_cost_backs_on_both_sides_is_kept():
+    # A parabola of exactly that σ: the rise at ±3σ and ±9σ is 9·s² and 81·s², what the check asks.
+    s = NOISE_S
+    p, notes, _ = _checked(lambda x: (x - 0.3) / 0.002 * s, 0.3, 0.002)
+    assert p.identifiable and p.std_error == pytest.approx(0.002, rel=1e-9)
+    assert notes == []
+
+
+def test_a_cost_flat_on_one_side_leaves_the_parameter_undetermined():
+    # Flat below the optimum (the drawn gear 2's static_factor below 1), steep above: the σ of the
+    # steep side alone is no σ; the reason names the flat side.
+    p, notes, _ = _checked(lambda x: max(x - 0.3, 0.0) * 1e4, 0.3, 0.002)
+    assert not p.identifiable and p.std_error is None
+    assert "−3σ" in p.note and "one-sided" in p.note
+    assert notes and "f_cl undetermined" in notes[0].text
+
+
+def test_a_cost_that_stops_rising_past_a_stair_widens_sigma():
+    # A plateau from 3σ on: the rise at ±3σ is what a parabola of that σ gives (9·s²), but at ±9σ it is
+    # still 9·s², not 81·s²: the half-width at which the rise reaches k²·s² is 9σ·√(1/9) = 3σ, so σ ×3.
+    s = NOISE_S
+    p, notes, _ = _checked(lambda x: 3.0 * s * min(abs(x - 0.3) / 0.006, 1.0), 0.3, 0.002)
+    assert p.identifiable and p.std_error == pytest.approx(0.006, rel=1e-6)
+    assert notes and "f_cl ×3" in notes[0].text

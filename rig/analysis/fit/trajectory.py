@@ -65,6 +65,12 @@ class TrajectoryFit:
     notes: list[str] = field(default_factory=list)
     prior_weight: float = 0.0  # λ of the prior rows at the optimum (0: no priors)
     data_only: dict[str, Prior] = field(default_factory=dict)  # `data_only_estimates` at the optimum
+    # Per parameter, how far each free parameter moves per unit of it along the cost's valley floor
+    # (`profile_directions`): where a profile of the cost walks.
+    profile_direction: dict[str, dict[str, float]] = field(default_factory=dict)
+    # Per parameter, σ as the cost's curvature gives it with white residuals (s² per row): the scale of
+    # the cost's rise, before the clustering widens the σ reported (`profile_directions`).
+    curvature_sigma: dict[str, float] = field(default_factory=dict)
 
 
 def data_only_estimates(
@@ -634,7 +640,30 @@ def fit_problem(problem: TrajectoryProblem, max_evaluations: int = 60) -> Trajec
         )
     after = _rms(problem.residuals(x_final)[: problem.size])
     data_only = data_only_estimates(problem, result.jac, result.fun, result.x) if problem.priors else {}
-    return TrajectoryFit(fitted, estimates, _rms(r0), after, len(r0), notes, problem.prior_weight, data_only)
+    fit = TrajectoryFit(fitted, estimates, _rms(r0), after, len(r0), notes, problem.prior_weight, data_only)
+    fit.profile_direction, fit.curvature_sigma = profile_directions(problem, result.jac, result.fun)
+    return fit
+
+
+def profile_directions(
+    problem: TrajectoryProblem, jac: np.ndarray, fun: np.ndarray
+) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
+    """For each free parameter p, the move of every free parameter per unit move of p that keeps the
+    others at their best (the linearized profile: column p of the trajectory rows' covariance over its
+    diagonal, in natural units), and p's σ from that covariance with white residuals. Correlated
+    parameters (a breakaway's f_cl and static_factor) share a valley; moving one alone climbs its wall
+    and overstates how well the data pin it."""
+    m = problem.size
+    data_jac = jac[:m]
+    s2 = float(fun[:m] @ fun[:m]) / max(m - jac.shape[1], 1)
+    cov = np.linalg.pinv(data_jac.T @ data_jac) * np.outer(problem.x_scale, problem.x_scale)
+    directions: dict[str, dict[str, float]] = {}
+    sigmas: dict[str, float] = {}
+    for i, name in enumerate(problem.names):
+        if cov[i, i] > 0 and np.all(np.isfinite(cov[:, i])):
+            directions[name] = {other: float(cov[j, i] / cov[i, i]) for j, other in enumerate(problem.names)}
+            sigmas[name] = math.sqrt(float(cov[i, i]) * s2)
+    return directions, sigmas
 
 
 def prior_weight(problem: TrajectoryProblem, jac: np.ndarray, fun: np.ndarray) -> float:

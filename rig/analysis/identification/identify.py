@@ -343,55 +343,104 @@ def _polish(
         )
 
 
-CURVATURE_SIGMAS = 3.0
-"""`_sigma_backed_by_cost` moves each parameter by this many of its σ."""
+CURVATURE_SIGMAS = (3.0, 9.0)
+"""`_sigma_backed_by_cost` moves each parameter by these many of its σ, to either side."""
+SUB_QUADRATIC = 9.0 / 1.2**2
+"""A parabola's rise grows 9× per ×3 step; under this (the σ it implies grew by more than 20 %) the
+profile is not yet quadratic there and `_rises_on_one_side` looks 3× further. Gear 2's static_factor
+rose 5.3× and 5.6× from 3σ to 9σ (then 8.6× to 27σ), its other parameters 8.2–9.6×."""
 
 
 def _sigma_backed_by_cost(problem: TrajectoryProblem, fit: TrajectoryFit, notes: list[Note]) -> None:
-    """Each σ checked against the cost itself (issue 25 item 2): moved by ±3σ alone, a parameter must
-    raise the residual's sum of squares by at least 9·s² (s² its per-row variance at the optimum), as a
-    quadratic cost with that σ would, the others held (re-optimizing them could only lower the rise).
+    """Each σ checked against the cost itself (issue 25 item 2), a cheap profile likelihood: moved by
+    ±kσ along its valley floor (the others following `fit.profile_direction`, the linearized profile),
+    a parameter must raise the residual's sum of squares on each side by what a quadratic cost with
+    that σ would: k²·s²·(σ/σ_c)², s² the per-row variance at the optimum and σ_c the σ the Jacobian's
+    curvature gives with white rows (`fit.curvature_sigma`; the σ reported is wider by the windows'
+    and blocks' correlation, and the rise it must back scales with it).
 
-    Friction makes the cost a staircase in a breakaway level: the finite-difference Jacobian spans a
-    stair's edge and its slope promises a curvature the cost does not have (a drawn gear: static_factor
-    ± 0.00046, 17σ from the truth; f_cl ± 0.0002, 20σ). Where the rise falls short, σ is widened to
-    where the measured rise would reach 9·s² if the cost were quadratic; with no rise it is not
-    determined. Two residual evaluations per parameter, on every window."""
+    Friction makes the cost a staircase in a breakaway level, and one-sided: the finite-difference
+    Jacobian spans a stair's edge and promises a curvature the cost does not have (a drawn gear:
+    f_cl ± 0.0002, 20σ from the truth, static_factor, its partner along the breakaway, 17σ); below a
+    static_factor of 1 the cost can be flat on one side and steep on the other (a drawn gear fitted
+    1.05 ± 0.0046 where the truth, 0.76, costs no more than 0.95: 63σ). Hence both sides, each on its
+    own, and at 9σ as well as 3σ: a stair's edge passes at 3σ but a staircase does not keep rising as
+    a parabola; where its rise grows slower than a parabola's, on by ×3 steps while it does. σ is
+    widened to the largest half-width at which a side's measured rise would reach k²·s² (as if the cost
+    were quadratic out to there, in units of σ_c); with no rise on a side, or σ wider than the value,
+    the parameter is not determined, with the reason. Four residual evaluations per parameter, a few
+    more where the cost flattens outward."""
     base = problem.residuals_of(fit.model)
     rss0 = float(base @ base)
     s2 = rss0 / max(len(base) - len(problem.names), 1)
+    values = {p.name: p.estimate for p in fit.parameters}
     widened = []
     for p in fit.parameters:
         if not p.identifiable or p.std_error is None or p.std_error <= 0:
             continue
-        rises = []
+        direction = fit.profile_direction.get(p.name, {p.name: 1.0})
+        sigma_c = fit.curvature_sigma.get(p.name, p.std_error)
+        sigma, flat = p.std_error, ""
         for sign in (1.0, -1.0):
-            try:
-                moved = problem.model_with({p.name: p.estimate + sign * CURVATURE_SIGMAS * p.std_error})
-            except UserInputError:
-                continue
-            r = problem.residuals_of(moved)
-            rises.append(float(r @ r) - rss0)
-        if not rises:
-            continue
-        rise = float(np.mean(rises))
-        needed = CURVATURE_SIGMAS**2 * s2
-        if rise >= needed:
-            continue
-        if rise <= 0:
+            moves = {n: sign * p.std_error * direction.get(n, 0.0) for n in values}  # per σ of p
+            rises = _rises_on_one_side(
+                problem, values, moves, abs(p.estimate) / p.std_error or math.inf, rss0
+            )
+            for k, rise in rises.items():
+                if rise <= 0:
+                    side = "+" if sign > 0 else "−"
+                    flat = f"the cost does not rise at {side}{k:g}σ of it (one-sided or flat)"
+                    break
+                # The half-width where this rise would reach k²·s², over σ_c: how much flatter than
+                # the curvature the cost is on this side.
+                sigma = max(sigma, p.std_error * k * p.std_error * math.sqrt(s2 / rise) / sigma_c)
+            if flat:
+                break
+        if not flat and sigma > abs(p.estimate) > 0:
+            flat = f"its cost's rise allows σ {sigma:.3g}, wider than the value"
+        if flat:
             p.identifiable, p.std_error = False, None
-            p.note = f"the cost does not rise within ±{CURVATURE_SIGMAS:g}σ of it: σ not backed by the data"
+            p.note = f"{flat}: σ not backed by the data"
             widened.append(f"{p.name} undetermined")
-            continue
-        factor = math.sqrt(needed / rise)
-        p.std_error *= factor
-        widened.append(f"{p.name} ×{factor:.3g}")
+        elif sigma > 1.01 * p.std_error:  # rounding alone widens a parabola's σ by ~1e-15
+            widened.append(f"{p.name} ×{sigma / p.std_error:.3g}")
+            p.std_error = sigma
     if widened:
         text = (
-            f"σ checked on the cost (±{CURVATURE_SIGMAS:g}σ must raise the sum of squares by"
-            f" {CURVATURE_SIGMAS**2:g}·s²): {', '.join(widened)}"
+            "σ checked on the cost (each side, ±3σ and ±9σ along the valley floor, must raise the sum"
+            f" of squares as its curvature says): {', '.join(widened)}"
         )
         notes.append(Note(JOINT, text, named=False))
+
+
+def _rises_on_one_side(
+    problem: TrajectoryProblem,
+    values: dict[str, float],
+    moves: dict[str, float],
+    k_max: float,
+    rss0: float,
+) -> dict[float, float]:
+    """The cost's rise from the optimum at k·`moves` for k in CURVATURE_SIGMAS, then on by ×3 while the
+    rise grows less than SUB_QUADRATIC times per ×3 (the cost flattening or falling outward: a stair's
+    edge near the optimum, a plateau or another valley past it), up to k_max (the move that would take
+    the parameter past zero)."""
+    rises: dict[float, float] = {}
+    ks = list(CURVATURE_SIGMAS)
+    while ks:
+        k = ks.pop(0)
+        if k > k_max:
+            break  # a move past zero says nothing of σ; σ > value/k is wide already
+        try:
+            moved = problem.model_with({n: v + k * moves.get(n, 0.0) for n, v in values.items()})
+        except UserInputError:
+            break
+        r = problem.residuals_of(moved)
+        rises[k] = float(r @ r) - rss0
+        if rises[k] <= 0:
+            break
+        if not ks and len(rises) > 1 and rises[k] < SUB_QUADRATIC * list(rises.values())[-2]:
+            ks.append(3.0 * k)
+    return rises
 
 
 def _say_verdict(chosen: Choice, fair: list[str], notes: list[Note]) -> None:
