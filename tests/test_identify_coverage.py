@@ -238,9 +238,15 @@ def test_a_cost_flat_on_one_side_leaves_the_parameter_undetermined():
 
 
 def test_a_cost_that_stops_rising_past_a_stair_widens_sigma():
-    # A plateau from 3σ on: the rise at ±3σ is what a parabola of that σ gives (9·s²), but at ±9σ it is
-    # still 9·s², not 81·s²: the half-width at which the rise reaches k²·s² is 9σ·√(1/9) = 3σ, so σ ×3.
+    # A stair's edge at the optimum, then a plateau to 9σ, then a parabola three times wider: the rise
+    # at ±3σ is what a parabola of σ gives (9·s²), at ±9σ still 9·s² (not 81·s²: the walk goes on), at
+    # ±27σ 81·s² (9× the 9σ rise: it stops). The half-width at which the rise reaches k²·s² is 3σ at
+    # 9σ and at 27σ: σ ×3, not ×9 as a plateau without end would give.
     s = NOISE_S
-    p, notes, _ = _checked(lambda x: 3.0 * s * min(abs(x - 0.3) / 0.006, 1.0), 0.3, 0.002)
+
+    def g(x: float) -> float:
+        return 0.0 if x == 0.3 else s * max(3.0, abs(x - 0.3) / 0.006)
+
+    p, notes, _ = _checked(g, 0.3, 0.002)
     assert p.identifiable and p.std_error == pytest.approx(0.006, rel=1e-6)
     assert notes and "f_cl ×3" in notes[0].text
