@@ -483,7 +483,9 @@ def _take_joint_values(
             sigma = None if p.std_error is None else p.std_error * scale.get(p.name, 1.0)
             row.estimate, row.uncertainty, row.identifiable, row.note = p.estimate, sigma, True, ""
         elif row.stage == "trajectory":
-            row.note = f"joint: {p.note}; start value kept"
+            # `_sigma_backed_by_cost` drops σ but leaves the fitted value in the model the rows follow.
+            kept = "start value kept" if p.estimate == p.start else "fitted value kept, without σ"
+            row.note = f"joint: {p.note}; {kept}"
         else:
             row.note = (row.note + "; " if row.note else "") + f"joint: {p.note}, staged value kept"
 
