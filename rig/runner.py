@@ -150,6 +150,8 @@ def output_motion(theta_l: np.ndarray) -> tuple[float, float]:
     """(motion, noise) of a window of θ_l [rad, 1 σ]: its spread about its mean, and the noise that the
     second differences show (white noise of σ gives var(Δ²) = 6σ²; a ring at the load mode's 11 Hz
     barely shows in Δ² at 1 kHz, so the estimate is not swamped by the motion it is compared with)."""
+    if theta_l.size == 0:  # a stop before the first sample: nothing seen, nothing at rest
+        return float("nan"), float("nan")
     motion = float(np.std(theta_l))
     noise = float(np.std(np.diff(theta_l, 2)) / np.sqrt(6.0)) if theta_l.size > 3 else 0.0
     return motion, noise

@@ -412,7 +412,8 @@ class Compensation(Experiment):
                 )
             for axis in fig.axes:
                 axis.set_ylabel("θ_l − r·θ_sp [rad]")
-                axis.legend(fontsize=8)
+                if axis.get_legend_handles_labels()[0]:  # no friction errors asked: the lower axes stay empty
+                    axis.legend(fontsize=8)
             fig.axes[1].set_title("model's friction off by the set errors", fontsize=9)
             fig.axes[1].set_xlabel(f"time since the {motion} started [s]")
             paths.append(save_figure(fig, out_dir / f"compensation_{motion}.png"))
