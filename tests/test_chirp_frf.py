@@ -19,8 +19,8 @@ from scipy import signal
 from model.params import HarmonicDriveModel, save_model
 from model.plant import Plant
 from rig.config import load_rig_config
-from rig.experiments.base import segment_rows
-from rig.experiments.chirp import ChirpParams, sweep_labels
+from rig.experiments.base import context_from_run, segment_rows
+from rig.experiments.chirp import ChirpParams, frf_tables, sweep_labels
 from rig.runner import RunOutcome, run_experiment
 from rig.store.runs import RunStore
 
@@ -165,3 +165,20 @@ def test_chirp_of_a_linear_plant_with_a_barely_damped_load_is_exact(tmp_path, se
     )
     error_db = frf["magnitude_db"][band] - 20 * np.log10(np.abs(expected))
     assert np.all(np.abs(error_db) <= 0.05), error_db
+
+
+def test_a_chirp_recorded_with_one_pass_is_analyzed_from_the_sweeps_it_has(store: RunStore) -> None:
+    """A run recorded before `passes` existed has one pass and parameters without the field, which read
+    back with today's default of two: the analysis takes the sweeps the run holds."""
+    outcome = run_experiment("chirp", CFG, {"passes": 1, "f_stop_hz": 10.0}, store)
+    assert outcome.status == "complete", outcome.reason
+    run = store.read(outcome.run_id)
+    recorded = {k: v for k, v in run.meta["params"].items() if k not in ("passes", "phase_seed")}
+    old = ChirpParams.model_validate(recorded)
+    assert old.passes == 2
+    ctx = context_from_run(run)
+    tables = frf_tables(run, old, ctx)
+    expected = frf_tables(run, ChirpParams.model_validate(run.meta["params"]), ctx)
+    for name, table in expected.items():
+        for column, values in table.items():
+            np.testing.assert_array_equal(tables[name][column], values, err_msg=f"{name}.{column}")

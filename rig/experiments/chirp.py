@@ -74,7 +74,14 @@ from scipy import optimize
 
 from model.errors import UserInputError
 from model.run import Run
-from rig.experiments.base import Experiment, ExperimentParams, Results, RigContext, segment_rows
+from rig.experiments.base import (
+    Experiment,
+    ExperimentParams,
+    Results,
+    RigContext,
+    segment_rows,
+    segments_of,
+)
 from rig.experiments.plots import new_figure, save_figure
 from rig.experiments.tracking import check_stroke, output_segment
 from rig.interface import ControlMode, Segment
@@ -173,11 +180,8 @@ def excitation(params: ChirpParams, ctx: RigContext, realization: int = 0) -> tu
     `realization`-th random-phase multisine of the lines' amplitudes (phases seeded by `phase_seed`), its
     crest factor lowered by clipping it and restoring the amplitudes, CREST_ITERATIONS times."""
     cycles = ctx.cycles(params.period_s)
-    period_s = cycles / ctx.rate_hz  # whole cycles: every line is a whole number of cycles per period
-    lines = np.arange(
-        math.ceil(params.f_start_hz * period_s - 1e-9), math.floor(params.f_stop_hz * period_s + 1e-9) + 1
-    )
-    freq_hz = lines / period_s
+    lines = excited_lines(params, ctx)
+    freq_hz = lines / (cycles / ctx.rate_hz)
     amps = freq_hz**-params.amp_exponent
     phases = np.random.default_rng([params.phase_seed, realization]).uniform(0.0, 2 * np.pi, lines.size)
     spectrum = np.zeros(cycles // 2 + 1, dtype=complex)
@@ -189,6 +193,21 @@ def excitation(params: ChirpParams, ctx: RigContext, realization: int = 0) -> tu
     spectrum[lines] = amps * np.exp(1j * phases)
     wave = np.fft.irfft(spectrum, cycles)
     return params.speed_amp_motor_rad_s * wave / np.max(np.abs(wave)), freq_hz
+
+
+def excited_lines(params: ChirpParams, ctx: RigContext) -> np.ndarray:
+    """The excitation's lines as DFT bins of one period (whole cycles: each a whole number per period)."""
+    period_s = ctx.cycles(params.period_s) / ctx.rate_hz
+    return np.arange(
+        math.ceil(params.f_start_hz * period_s - 1e-9), math.floor(params.f_stop_hz * period_s + 1e-9) + 1
+    )
+
+
+def recorded_sweeps(run: Run, params: ChirpParams) -> list[str]:
+    """The sweeps `run` holds, in the order played (a run recorded before `passes` existed has one pass,
+    while its parameters read back with today's default)."""
+    held = {str(seg["label"]) for seg in segments_of(run)}
+    return [label for label in sweep_labels(params) if label in held]
 
 
 def sweep_labels(params: ChirpParams) -> list[str]:
@@ -329,15 +348,15 @@ def frf_tables(run: Run, params: ChirpParams, ctx: RigContext) -> dict[str, dict
     Columns: freq_hz; magnitude_db, phase_deg (H = Σ R̄·Y / Σ R̄·U over every analyzed period of both
     sweeps, each sweep's polynomial trend taken out first, see `periodic_records`); coherence (the weaker
     of γ²(r, u) and γ²(r, y) over those periods); magnitude_std_db, phase_std_deg (1σ of H from the
-    spread of the per-period estimates Y/U: their standard deviation over √(number of periods),
-    linearized in dB and degrees: the confidence band from the data).
+    spread of the sweeps' own estimates: their standard deviation over √(number of sweeps), linearized
+    in dB and degrees: the confidence band from the data).
     """
     cycles = ctx.cycles(params.period_s)
-    period_s = cycles / ctx.rate_hz
-    _, lines_hz = excitation(params, ctx)
-    bins = np.rint(lines_hz * period_s).astype(int)
+    bins = excited_lines(params, ctx)
+    lines_hz = bins / (cycles / ctx.rate_hz)
+    sweeps = recorded_sweeps(run, params)
     spectra: dict[str, list[np.ndarray]] = {name: [] for name in ("reference", "current", "speed", "load")}
-    for label in sweep_labels(params):
+    for label in sweeps:
         rows = analyzed_rows(run, label, params, ctx)
         set_out = ctx.gear_ratio * run["setpoint"][rows.start - 1 : rows.stop]
         # The mean-speed ramp of the set-point, exact over whole periods (the excitation sums to zero).
@@ -361,14 +380,13 @@ def frf_tables(run: Run, params: ChirpParams, ctx: RigContext) -> dict[str, dict
         power = np.sum(np.abs(per_period[a]) ** 2, axis=0) * np.sum(np.abs(reference) ** 2, axis=0)
         return np.asarray(np.abs(cross(a)) ** 2 / power)
 
-    sweeps = len(sweep_labels(params))
     tables = {}
     for name, (u, y, _, _) in FRFS.items():
         h = cross(y) / cross(u)
         # The band: the spread of the sweeps' own estimates. Each sweep plays its own realization, so
         # the nonlinear distortion, the same in every period of a sweep, differs between sweeps like noise.
-        each = np.array([_sweep_frf(per_period, u, y, k, params.periods) for k in range(sweeps)])
-        spread = np.sqrt(np.sum(np.abs(each - each.mean(axis=0)) ** 2, axis=0) / (sweeps - 1) / sweeps)
+        each = np.array([_sweep_frf(per_period, u, y, k, params.periods) for k in range(len(sweeps))])
+        spread = np.sqrt(np.sum(np.abs(each - each.mean(axis=0)) ** 2, axis=0) / (len(each) - 1) / len(each))
         relative = spread / np.abs(h)
         tables[name] = {
             "freq_hz": lines_hz,
