@@ -572,12 +572,9 @@ class Cia402Twin:
             return 0.0, 0.0, AMBIENT_C, AMBIENT_C
         row = truth[-1][-1].tolist()  # plain floats: a SYNC's one reading costs less without arrays
         truth.clear()
-        # TorqueTransducers.truth's definitions, one cycle at a time (tests/test_canopen_dyno.py checks
-        # the two agree), with its constants and its noise stream.
+        # TorqueTransducers' definitions, one cycle at a time, with its noise stream.
         transducers = self._transducers
-        t_s, f_l = row[T_T_S], row[T_F_L]
-        tau_in = transducers.r * t_s + row[T_F_M]
-        tau_out = t_s - f_l - transducers.gear_share * (t_s - f_l - row[T_TAU_EXT])
+        tau_in, tau_out = transducers.torques(row[T_T_S], row[T_F_M], row[T_F_L], row[T_TAU_EXT])
         plant_c = (
             (row[T_TEMP_MOTOR], row[T_TEMP_GEAR]) if self.model.thermal is not None else (AMBIENT_C,) * 2
         )

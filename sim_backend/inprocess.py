@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from typing import TypeVar
 
 import numpy as np
 
@@ -13,6 +14,9 @@ from model.registry import X
 from rig.config import RigConfig
 from rig.interface import SAMPLE_COLUMNS, Block, ControlMode, Rig
 from sim_backend.simulated_drive import TRUTH_COLUMNS, SimulatedDrive
+
+Torque = TypeVar("Torque", float, np.ndarray)
+"""A torque per row, or one cycle's [N·m]."""
 
 
 class SimRig(Rig):
@@ -190,10 +194,13 @@ class TorqueTransducers:
         f_m = cycles[:, TRUTH_COLUMNS.index("f_m")]
         f_l = cycles[:, TRUTH_COLUMNS.index("f_l")]
         tau_ext = cycles[:, TRUTH_COLUMNS.index("tau_ext")]
-        return {
-            "tau_in": self.r * t_s + f_m,
-            "tau_out": t_s - f_l - self.gear_share * (t_s - f_l - tau_ext),
-        }
+        tau_in, tau_out = self.torques(t_s, f_m, f_l, tau_ext)
+        return {"tau_in": tau_in, "tau_out": tau_out}
+
+    def torques(self, t_s: Torque, f_m: Torque, f_l: Torque, tau_ext: Torque) -> tuple[Torque, Torque]:
+        """(τ_in, τ_out) from the plant's shaft torque, motor and load friction and load torque, per row or
+        for one cycle's floats (the CANopen twin's DAQ reads one a SYNC) [N·m]."""
+        return self.r * t_s + f_m, t_s - f_l - self.gear_share * (t_s - f_l - tau_ext)
 
     def read(self, cycles: np.ndarray) -> dict[str, np.ndarray]:
         """What the transducers read over a block of truth rows [N·m]."""
