@@ -709,3 +709,84 @@ def static_motor_friction(
         _, static = motor_levels(p, s, theta_m[i], 0.0, t_s, time_s)
         out[i] = max(static + p[P.DIR_F] * direction, 0.0)
     return out
+
+
+OUT_COLUMNS = len(OUT)
+"""Columns of an output row (numba takes the count as a constant, not `len` of the enum)."""
+
+
+@njit(cache=True, nogil=True)
+def replay_windows(
+    p: np.ndarray,
+    flags: np.ndarray,
+    mode: int,
+    starts: np.ndarray,
+    drive: np.ndarray,
+    tau_ext: np.ndarray,
+    windows: np.ndarray,
+    seg_steps: np.ndarray,
+    seg_decim: np.ndarray,
+    seg_dt: np.ndarray,
+    measured: np.ndarray,
+    scales: np.ndarray,
+    outputs: np.ndarray,
+    residual: np.ndarray,
+) -> None:
+    """Replay shooting windows, each from its own start state, and write (replayed − measured)/scale of
+    each window's channels, channel after channel, into `residual` (the trajectory fit's inner loop,
+    `rig.analysis.fit.trajectory`). Without the GIL: callers may replay disjoint windows on threads.
+
+    Row w of `windows`: [first input step, first segment, segment stop, first measured row, rows, first
+    residual element]; `starts[w]` the state it starts from. A window's segments run one after another
+    (`seg_steps` steps of `seg_dt`, a row every `seg_decim` steps); where the step changes, the speeds move
+    from half the old step behind the positions to half the new one, at the old step's last acceleration,
+    a stuck or stopping body staying at zero. The last segment's final step writes the last sample's row.
+    """
+    n_windows = windows.shape[0]
+    longest = 0
+    for w in range(n_windows):
+        longest = max(longest, windows[w, 4])
+    rows_out = np.empty((longest + 2, OUT_COLUMNS))
+    last = np.empty((1, OUT_COLUMNS))
+    x = np.empty(starts.shape[1])
+    for w in range(n_windows):
+        x[:] = starts[w]
+        first, rows = windows[w, 0], 0
+        last_segment = windows[w, 2] - 1
+        for i in range(windows[w, 1], windows[w, 2]):
+            stop = first + seg_steps[i]
+            dt, decim = seg_dt[i], seg_decim[i]
+            if i == last_segment:
+                rows += integrate(
+                    p, flags, x, mode, drive[first:stop], tau_ext[first:stop], dt, decim, rows_out[rows:]
+                )
+                break
+            rows += integrate(
+                p,
+                flags,
+                x,
+                mode,
+                drive[first : stop - 1],
+                tau_ext[first : stop - 1],
+                dt,
+                decim,
+                rows_out[rows:],
+            )
+            before_m, before_l = x[X.OMEGA_M], x[X.OMEGA_L]
+            integrate(p, flags, x, mode, drive[stop - 1 : stop], tau_ext[stop - 1 : stop], dt, 1, last)
+            if (seg_steps[i] - 1) % decim == 0:  # the last step starts a sample: its row is recorded
+                rows_out[rows] = last[0]
+                rows += 1
+            shift = 0.5 * (dt - seg_dt[i + 1]) / dt
+            if before_m != 0.0 and x[X.OMEGA_M] != 0.0:
+                x[X.OMEGA_M] += shift * (x[X.OMEGA_M] - before_m)
+            if before_l != 0.0 and x[X.OMEGA_L] != 0.0:
+                x[X.OMEGA_L] += shift * (x[X.OMEGA_L] - before_l)
+            first = stop
+        if rows != windows[w, 4]:
+            raise ValueError("a window's replay wrote another number of rows than it measured")
+        row0, element = windows[w, 3], windows[w, 5]
+        for c in range(outputs.shape[0]):
+            for j in range(rows):
+                residual[element] = (rows_out[j, outputs[c]] - measured[row0 + j, c]) / scales[w, c]
+                element += 1

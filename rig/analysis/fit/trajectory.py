@@ -22,8 +22,10 @@ from __future__ import annotations
 import copy
 import itertools
 import math
+import os
 import re
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,9 +33,10 @@ from scipy.optimize import OptimizeResult, least_squares
 from scipy.signal import savgol_coeffs, savgol_filter
 
 from model.errors import UserInputError
+from model.kernel import replay_windows
 from model.params import HarmonicDriveModel
-from model.plant import INPUT_COLUMN, InputMode, Plant
-from model.registry import OUT, P, X
+from model.plant import INPUT_COLUMN, MODES, InputMode, Plant
+from model.registry import OUT, P
 from model.run import Run
 from model.simulate import replay_mode, replay_rows, substeps
 from rig.analysis.fit.parameters import get_values, with_values
@@ -257,36 +260,108 @@ class _Replay:
             outputs=[CHANNELS[c] for c in channels],
         )
 
-    def residual(self, plant: Plant, time_s: float) -> np.ndarray:
-        """(replayed − measured)/scale, channel after channel."""
-        plant.reset(**self.state, time_s=time_s)  # type: ignore[arg-type]
-        if len(self.segments) == 1:
-            rows = plant.advance(self.drive, self.mode, self.load, self.segments[0][2], self.segments[0][1])
-        else:
-            parts, first = [], 0
-            speeds = [X.OMEGA_M, X.OMEGA_L]
-            for i, (count, n, h) in enumerate(self.segments):
-                stop = first + count
-                if i + 1 == len(self.segments):
-                    parts.append(
-                        plant.advance(self.drive[first:stop], self.mode, self.load[first:stop], h, n)
-                    )
-                    break
-                # The step changes at the next sample: the speeds move from half this step behind the
-                # positions to half the next step behind, at the acceleration of this last step.
-                head = plant.advance(
-                    self.drive[first : stop - 1], self.mode, self.load[first : stop - 1], h, n
-                )
-                before = plant.x[speeds].copy()
-                last = plant.advance(self.drive[stop - 1 : stop], self.mode, self.load[stop - 1 : stop], h, 1)
-                parts += [head, last] if (count - 1) % n == 0 else [head]
-                after = plant.x[speeds]
-                moving = (before != 0.0) & (after != 0.0)  # a stuck or stopping body stays at zero
-                shift = 0.5 * (h - self.segments[i + 1][2]) / h
-                plant.x[speeds] = after + np.where(moving, shift * (after - before), 0.0)
-                first = stop
-            rows = np.concatenate(parts)
-        return np.asarray(((rows[:, self.outputs] - self.measured) / self.scales).T.ravel())
+
+@dataclass
+class _Batch:
+    """Windows replayed together by one compiled call (`model.kernel.replay_windows`): their `_Replay`s'
+    inputs, segments and measurements laid end to end, and where each window's residual goes. A window
+    is (first input step, first segment, segment stop, first row, rows, first residual element)."""
+
+    windows: list[_Window]
+    emf_step_s: float
+    mode: InputMode
+    table: np.ndarray  # (windows, 6) int64
+    drive: np.ndarray
+    load: np.ndarray
+    seg_steps: np.ndarray
+    seg_decim: np.ndarray
+    seg_dt: np.ndarray
+    measured: np.ndarray  # (rows, channels)
+    scales: np.ndarray  # (windows, channels)
+    outputs: np.ndarray  # the kernel's OUT columns of the channels
+
+    @property
+    def steps_per_window(self) -> np.ndarray:
+        return np.diff(np.concatenate([[0], np.cumsum(self.seg_steps)])[self.table[:, 1:3]], axis=1)[:, 0]
+
+    @classmethod
+    def of(cls, windows: list[tuple[_Window, int]], emf_step_s: float) -> _Batch:
+        """`windows`: each with its replay and the first element of its residual in the whole residual."""
+        replays = [w.replay for w, _ in windows if w.replay is not None]
+        steps = np.cumsum([0] + [len(r.drive) for r in replays])
+        segments = np.cumsum([0] + [len(r.segments) for r in replays])
+        rows = np.cumsum([0] + [len(r.measured) for r in replays])
+        table = np.column_stack(
+            [steps[:-1], segments[:-1], segments[1:], rows[:-1], np.diff(rows), [at for _, at in windows]]
+        ).astype(np.int64)
+        flat = [s for r in replays for s in r.segments]
+        return cls(
+            [w for w, _ in windows],
+            emf_step_s,
+            replays[0].mode,
+            table,
+            np.concatenate([r.drive for r in replays]),
+            np.concatenate([r.load for r in replays]),
+            np.array([n for n, _, _ in flat], np.int64),
+            np.array([d for _, d, _ in flat], np.int64),
+            np.array([h for _, _, h in flat]),
+            np.concatenate([r.measured for r in replays]),
+            np.array([r.scales for r in replays]),
+            np.array(replays[0].outputs, np.int64),
+        )
+
+    def replay_into(self, model: HarmonicDriveModel, residual: np.ndarray) -> None:
+        """Each window's scaled residual under `model`, written in place; the windows split among
+        threads (the compiled replay releases the GIL; each window is replayed alone, so the numbers do
+        not depend on the split)."""
+        plant = Plant(model)
+        plant.p[P.J_M] += emf_lag_inertia(model, self.emf_step_s) if self.emf_step_s else 0.0
+        starts = np.empty((len(self.windows), len(plant.x)))
+        for i, w in enumerate(self.windows):
+            plant.reset(**w.replay.state, time_s=w.time_s)  # type: ignore[union-attr]
+            starts[i] = plant.x
+        mode = MODES[self.mode]
+
+        def part(chunk: slice) -> None:
+            replay_windows(
+                plant.p,
+                plant.flags,
+                mode,
+                starts[chunk],
+                self.drive,
+                self.load,
+                self.table[chunk],
+                self.seg_steps,
+                self.seg_decim,
+                self.seg_dt,
+                self.measured,
+                self.scales[chunk],
+                self.outputs,
+                residual,
+            )
+
+        chunks = _chunks(self.steps_per_window, REPLAY_THREADS)
+        if len(chunks) == 1:
+            part(chunks[0])
+            return
+        with ThreadPoolExecutor(len(chunks)) as pool:
+            for done in [pool.submit(part, c) for c in chunks]:
+                done.result()
+
+
+REPLAY_THREADS = max(1, min(len(os.sched_getaffinity(0)), 8))
+"""Threads the windows' replay is split among: the machine's cores, up to 8."""
+MIN_STEPS_PER_THREAD = 20_000
+"""Fewer integration steps than this per thread are replayed on one: a thread's start costs more."""
+
+
+def _chunks(steps: np.ndarray, threads: int) -> list[slice]:
+    """Windows cut into at most `threads` contiguous runs of about equal integration steps (a window
+    with stops and reversals steps finer, `EVENT_STEP_S`, and costs several times another)."""
+    n = max(1, min(threads, int(steps.sum()) // MIN_STEPS_PER_THREAD))
+    cumulative = np.cumsum(steps)
+    edges = [0, *np.searchsorted(cumulative, cumulative[-1] * np.arange(1, n) / n).tolist(), len(steps)]
+    return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges) if b > a]
 
 
 def _event_intervals(run: Run, bands: dict[str, float] | None = None) -> np.ndarray:
@@ -490,6 +565,7 @@ class TrajectoryProblem:
         self.x_scale = np.array([abs(v) if v != 0 else 1.0 for v in self.start.values()])
         self.priors: dict[str, Prior] = {}
         self.block_sigma = False  # σ also from contiguous blocks of windows (`block_of_residual`)
+        self._batched: tuple[list[_Window], list[_Batch]] | None = None  # (of these windows, `_batches`)
         self.prior_weight = 0.0  # λ; 0 with priors: `fit_problem` measures it
 
     def with_priors(self, priors: dict[str, Prior], weight: float = 0.0) -> TrajectoryProblem:
@@ -520,20 +596,36 @@ class TrajectoryProblem:
 
     def residuals_of(self, model: HarmonicDriveModel) -> np.ndarray:
         """The scaled residual of any model on these windows (the same scales, so costs compare)."""
-        plants: dict[float, Plant] = {}
-        parts = []
+        residual = np.empty(self.size)
+        for batch in self._batches():
+            batch.replay_into(model, residual)
+        at = 0
+        plant = Plant(model)
         for w in self.windows:
-            plant = plants.get(w.emf_step_s)
-            if plant is None:
-                plant = plants[w.emf_step_s] = Plant(model)
-                plant.p[P.J_M] += emf_lag_inertia(model, w.emf_step_s) if w.emf_step_s else 0.0
+            size = len(w.run) * len(w.channels)
+            if w.replay is None:  # an irregular time base: `replay_rows` cuts each interval on its own
+                rows = replay_rows(plant, w.run, replay_mode(w.run), w.step_s, time_s=w.time_s)
+                residual[at : at + size] = np.concatenate(
+                    [(rows[:, CHANNELS[ch]] - w.run[ch]) / w.scales[ch] for ch in w.channels]
+                )
+            at += size
+        return residual
+
+    def _batches(self) -> list[_Batch]:
+        """The windows with a prepared replay, batched by what their replays share (the plant's emf
+        inertia, the input mode, the channels), built once per set of windows."""
+        if self._batched is not None and self._batched[0] is self.windows:
+            return self._batched[1]
+        groups: dict[tuple[float, str, tuple[int, ...]], list[tuple[_Window, int]]] = {}
+        at = 0
+        for w in self.windows:
             if w.replay is not None:
-                parts.append(w.replay.residual(plant, w.time_s))
-                continue
-            rows = replay_rows(plant, w.run, replay_mode(w.run), w.step_s, time_s=w.time_s)
-            for ch in w.channels:
-                parts.append((rows[:, CHANNELS[ch]] - w.run[ch]) / w.scales[ch])
-        return np.concatenate(parts)
+                key = (w.emf_step_s, w.replay.mode, tuple(w.replay.outputs))
+                groups.setdefault(key, []).append((w, at))
+            at += len(w.run) * len(w.channels)
+        batches = [_Batch.of(members, key[0]) for key, members in groups.items()]
+        self._batched = (self.windows, batches)
+        return batches
 
     @property
     def size(self) -> int:
