@@ -1,0 +1,79 @@
+"""The trajectory fit's windows are replayed by one compiled call (`model.kernel.replay_windows`), split
+among threads by integration steps. Checked against what it replaces: each window replayed on its own by
+`Plant.reset` and `Plant.advance`, and against itself on one thread and on several."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+import rig.analysis.fit.trajectory as trajectory
+from hdrig_testing.independent_plant import IndependentRig, lab_profile
+from model.params import HarmonicDriveModel
+from model.plant import Plant
+from model.run import Run
+from model.simulate import simulate
+from rig.analysis.fit.parameters import get_values, with_values
+from rig.analysis.fit.trajectory import CHANNELS, TrajectoryProblem, _chunks
+
+
+@pytest.fixture(scope="module")
+def lab_run(seed: HarmonicDriveModel) -> Run:
+    """3 s of a flexible gear from the independent rig (voltage PI, 14-bit encoder): a continuous
+    process, so its windows step finer where a body stops or reverses (several segments each)."""
+    speed, load = lab_profile(3.0)
+    run = IndependentRig(seed, drive="voltage", seed=2).record(speed, load)
+    return Run({c: run[c] for c in ("t", "u", "tau_ext", "theta_m", "theta_l", "i_a")}, {}).validate()
+
+
+def test_a_sim_runs_windows_replay_as_the_plant_alone_would(seed: HarmonicDriveModel):
+    """A run of the project's plant is replayed exactly: one segment per window, so each window's
+    residual is the plant reset to the window's first measured state and advanced over its inputs."""
+    run = simulate(seed, "sine:amp=6,freq=2", 0.6, dt_s=1e-4)
+    assert trajectory.replay_scheme(run, 1e-4) == (1e-4, False)  # replayed exactly, at its plant's step
+    problem = TrajectoryProblem(seed, [run], [], 0.1, 1e-4, tuple(CHANNELS))
+    start = get_values(seed, ["J_m", "K_s"])
+    other = with_values(seed, {"J_m": 1.1 * start["J_m"], "K_s": 0.8 * start["K_s"]})
+    got = problem.residuals_of(other)
+    plant, expected = Plant(other), []
+    for w in problem.windows:
+        replay = w.replay
+        assert replay is not None and len(replay.segments) == 1
+        _, decim, dt_s = replay.segments[0]
+        plant.reset(**replay.state, time_s=w.time_s)  # type: ignore[arg-type]
+        rows = plant.advance(replay.drive, replay.mode, replay.load, dt_s, decim)
+        expected.append(((rows[:, replay.outputs] - replay.measured) / replay.scales).T.ravel())
+    np.testing.assert_array_equal(got, np.concatenate(expected))
+    assert np.abs(got).max() > 0.01  # the other model is visibly off: the comparison is not of zeros
+
+
+def test_the_replay_does_not_depend_on_how_windows_are_split_among_threads(
+    lab_run: Run, seed: HarmonicDriveModel, monkeypatch: pytest.MonkeyPatch
+):
+    problem = TrajectoryProblem(seed, [lab_run], [], 0.1, 1e-4, tuple(CHANNELS), refine_voltage=False)
+    assert max(len(w.replay.segments) for w in problem.windows if w.replay) > 1  # steps change inside
+    monkeypatch.setattr(trajectory, "MIN_STEPS_PER_THREAD", 1)
+    results = []
+    for threads in (1, 2, 5):
+        monkeypatch.setattr(trajectory, "REPLAY_THREADS", threads)
+        fresh = TrajectoryProblem(seed, [lab_run], [], 0.1, 1e-4, tuple(CHANNELS), refine_voltage=False)
+        results.append(fresh.residuals_of(seed))
+    for other in results[1:]:
+        np.testing.assert_array_equal(other, results[0])
+    held = problem.split(4)[1]  # a subset of the windows keeps each one's residual
+    every = range(3, len(problem.windows), 4)
+    train_held = np.concatenate([results[0][problem.window_of_residual == i] for i in every])
+    np.testing.assert_array_equal(held.residuals_of(seed), train_held)
+
+
+def test_windows_are_cut_into_runs_of_about_equal_steps(monkeypatch: pytest.MonkeyPatch):
+    steps = np.array([10, 10, 400, 10, 10, 10, 390, 10], dtype=np.int64)
+    assert len(_chunks(steps, 2)) == 1  # too little work for a second thread
+    monkeypatch.setattr(trajectory, "MIN_STEPS_PER_THREAD", 100)
+    chunks = _chunks(steps, 2)
+    assert chunks[0].start == 0 and chunks[-1].stop == len(steps)
+    assert all(a.stop == b.start for a, b in itertools.pairwise(chunks))
+    sums = [int(steps[c].sum()) for c in chunks]
+    assert len(sums) == 2 and max(sums) <= 0.6 * steps.sum()  # not 4 windows each: 830 against 20
