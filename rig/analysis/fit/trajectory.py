@@ -119,6 +119,11 @@ coarser steps biased J_l measurably on ideal-sensor data; this step buys most of
 times the steps of a plain replay. Noisy sensors cost more: a still body's measured speed flips sign
 with the noise, which `speed_bands` tells from a stop. Figures: docs/BENCHMARKS.md, "Figures behind
 design choices in the code"."""
+PLAIN_EVENT_STEP_S = 1e-5
+"""`EVENT_STEP_S` for the coarse replay of runs without metadata (`TrajectoryProblem`'s `refine_voltage`
+off: a lab file, its sensors' noise unknown). On 14-bit records of drawn gears every estimate moved by
+a tenth of its σ or less from the 2.5 µs step, for a third to half of the fit's time; on ideal-sensor
+data the 10 µs step leaves J_l −0.026 % (docs/BENCHMARKS.md)."""
 
 
 def plant_step(run: Run) -> float | None:
@@ -213,6 +218,7 @@ class _Replay:
         dt_s: float,
         continuous: bool = False,
         bands: dict[str, float] | None = None,
+        event_step_s: float = EVENT_STEP_S,
     ) -> _Replay | None:
         """`bands`: the whole run's `speed_bands` (a window alone is too short to tell its noise)."""
         mode = replay_mode(run)
@@ -224,7 +230,7 @@ class _Replay:
         if continuous:
             refined = _event_intervals(run, bands)
             refined[0] = False  # the window's start speed is lagged by the base step's half
-            fine = np.maximum(1, np.ceil(intervals / EVENT_STEP_S - 1e-9)).astype(int)
+            fine = np.maximum(1, np.ceil(intervals / event_step_s - 1e-9)).astype(int)
             counts = np.where(refined, np.maximum(counts, fine), counts)
         steps = intervals / counts
         drive = run[INPUT_COLUMN[mode]]
@@ -529,8 +535,10 @@ class TrajectoryProblem:
         channels: Sequence[str] = tuple(CHANNELS),
         refine_voltage: bool = True,
     ) -> None:
-        """`refine_voltage` off: a continuous process driven by voltage is replayed at `dt_s`, its
-        back-EMF's lag taken out by `emf_lag_inertia`, instead of at a tenth of the step."""
+        """`refine_voltage` off (runs without metadata): a continuous process driven by voltage is
+        replayed at `dt_s`, its back-EMF's lag taken out by `emf_lag_inertia`, instead of at a tenth of
+        the step, and its stops and reversals at `PLAIN_EVENT_STEP_S`."""
+        event_step = EVENT_STEP_S if refine_voltage else PLAIN_EVENT_STEP_S
         self.model = model
         self.names = names
         self.dt_s = dt_s
@@ -552,7 +560,7 @@ class TrajectoryProblem:
                     scales,
                     float(piece.t[0] - run.t[0]),
                     step,
-                    _Replay.of(piece, seen, scales, step, continuous, bands)
+                    _Replay.of(piece, seen, scales, step, continuous, bands, event_step)
                     if piece.input_column is not None
                     else None,
                     emf_step,
