@@ -121,9 +121,9 @@ with the noise, which `speed_bands` tells from a stop. Figures: docs/BENCHMARKS.
 design choices in the code"."""
 PLAIN_EVENT_STEP_S = 1e-5
 """`EVENT_STEP_S` for the coarse replay of runs without metadata (`TrajectoryProblem`'s `refine_voltage`
-off: a lab file, its sensors' noise unknown). On 14-bit records of drawn gears every estimate moved by
-a tenth of its σ or less from the 2.5 µs step, for a third to half of the fit's time; on ideal-sensor
-data the 10 µs step leaves J_l −0.026 % (docs/BENCHMARKS.md)."""
+off: a lab file, its sensors' noise unknown): on 14-bit records the noise is far above the step's
+error there, and the fit takes a third to a half of the time; on ideal-sensor data the 10 µs step leaves
+J_l −0.026 % (figures: docs/BENCHMARKS.md, issue 25's fit speed)."""
 
 
 def plant_step(run: Run) -> float | None:
