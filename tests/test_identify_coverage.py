@@ -250,3 +250,82 @@ def test_a_cost_that_stops_rising_past_a_stair_widens_sigma():
     p, notes, _ = _checked(g, 0.3, 0.002)
     assert p.identifiable and p.std_error == pytest.approx(0.006, rel=1e-6)
     assert notes and "f_cl ×3" in notes[0].text
+
+
+class _CurvedValleyCost:
+    """Two parameters: `name` (x) and b_l (y). The residual is fixed noise n plus two rows n is zero on:
+    g(x), and (y − c(x))/ε·s, a valley whose floor c bends away from the straight line the linearized
+    profile walks (c'(x̂) = 0). Re-fitting y puts the second row at zero: the real profile of x is g(x)²."""
+
+    def __init__(self, name: str, g, c, eps: float):
+        self.names = [name, "b_l"]
+        self.noise = np.random.default_rng(3).standard_normal(1000)
+        self.noise[:2] = 0.0
+        self.g, self.c, self.eps = g, c, eps
+
+    def model_with(self, values):
+        return values
+
+    def residuals_of(self, model):
+        r = self.noise.copy()
+        x = model[self.names[0]]
+        r[0] = self.g(x)
+        r[1] = (model["b_l"] - self.c(x)) / self.eps * self._s
+        return r
+
+    @property
+    def _s(self) -> float:
+        return math.sqrt(float(self.noise @ self.noise) / (1000 - 2))
+
+
+def _checked_in_a_valley(name: str, x: float, sigma: float, g, c):
+    problem = _CurvedValleyCost(name, g, c, 0.001)
+    p = ParameterEstimate(name, x, x, sigma, True)
+    q = ParameterEstimate("b_l", 1.0, 1.0, 0.001, True)  # its own cost: a parabola of exactly that σ
+    fit = TrajectoryFit(
+        {name: x, "b_l": 1.0},
+        [p, q],
+        1.0,
+        1.0,
+        1000,
+        profile_direction={name: {name: 1.0, "b_l": 0.0}, "b_l": {name: 0.0, "b_l": 1.0}},
+    )
+    fit.curvature_sigma = {name: sigma, "b_l": 0.001}  # white rows: the reported σ is the curvature's
+    notes: list = []
+    _sigma_backed_by_cost(problem, fit, notes)  # type: ignore[arg-type]
+    return p, q, problem._s
+
+
+def test_a_breakaway_level_is_profiled_with_the_others_refitted():
+    # static_factor (a breakaway level: re-fitted from the start) at 1.05 ± 0.005: a parabola of that σ
+    # above, a stair of 2σ below and flat past it (gear 2's shape: the truth 0.76 costs about what 0.95
+    # does). The others' valley bends (c = 1 + 1e4·(x − 1.05)², ε = 0.001): along the straight line
+    # (b_l held) −3σ already costs (1e4·0.015²/0.001)² = 2250² s², so the former check kept σ. With b_l
+    # re-fitted the rise is 4·s² at every k below: the walk goes on by ×3 while the profile is flat, to
+    # 81σ (the last before 0); the half-width at which 4·s² reaches 81²·s² is 81/2 σ: σ ×40.5.
+    s0 = 0.005
+
+    def g(x: float) -> float:
+        s = _CurvedValleyCost("static_factor", None, None, 1.0)._s
+        return s * ((x - 1.05) / s0 if x >= 1.05 else min((1.05 - x) / s0, 2.0))
+
+    p, q, _ = _checked_in_a_valley("static_factor", 1.05, s0, g, lambda x: 1.0 + 1e4 * (x - 1.05) ** 2)
+    assert p.identifiable and p.std_error == pytest.approx(40.5 * s0, rel=1e-6)
+    assert q.identifiable and q.std_error == pytest.approx(0.001, rel=1e-6)  # a parabola: kept
+
+
+def test_a_straight_walk_that_flattens_then_climbs_a_wall_is_profiled():
+    # f_cl (no breakaway level) at 0.3 ± 0.002: a parabola above; below a stair of 3σ then flat. The
+    # valley bends as (x − 0.3)⁴ (0.006·((x − 0.3)/0.018)⁴, ε = 0.001): on the straight line the rises
+    # below are 9.0055·s² at 3σ, 45·s² at 9σ (5× the 3σ one: slower than a parabola's 9×, so the walk
+    # goes on), 9·s² + 486²·s² at 27σ, where the former check stopped: σ ×9/√45 = ×1.34. Re-fitting b_l
+    # once the line flattens leaves 9·s² at every k below: flat out to 81σ, σ ×81/3 = ×27.
+    s0 = 0.002
+
+    def g(x: float) -> float:
+        s = _CurvedValleyCost("f_cl", None, None, 1.0)._s
+        return s * ((x - 0.3) / s0 if x >= 0.3 else min((0.3 - x) / s0, 3.0))
+
+    p, q, _ = _checked_in_a_valley("f_cl", 0.3, s0, g, lambda x: 1.0 + 0.006 * ((x - 0.3) / 0.018) ** 4)
+    assert p.identifiable and p.std_error == pytest.approx(27.0 * s0, rel=1e-6)
+    assert q.identifiable and q.std_error == pytest.approx(0.001, rel=1e-6)

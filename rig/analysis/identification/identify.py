@@ -25,6 +25,7 @@ from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.fit.trajectory import (
     CHANNELS,
+    SIGNED,
     TrajectoryFit,
     TrajectoryProblem,
     fit_problem,
@@ -352,12 +353,16 @@ rose 5.3× and 5.6× from 3σ to 9σ (then 8.6× to 27σ), its other parameters 
 
 
 def _sigma_backed_by_cost(problem: TrajectoryProblem, fit: TrajectoryFit, notes: list[Note]) -> None:
-    """Each σ checked against the cost itself (issue 25 item 2), a cheap profile likelihood: moved by
-    ±kσ along its valley floor (the others following `fit.profile_direction`, the linearized profile),
-    a parameter must raise the residual's sum of squares on each side by what a quadratic cost with
-    that σ would: k²·s²·(σ/σ_c)², s² the per-row variance at the optimum and σ_c the σ the Jacobian's
+    """Each σ checked against the cost itself (issue 25 item 2), a profile likelihood: moved by ±kσ
+    along its valley floor (the others following `fit.profile_direction`, the linearized profile), a
+    parameter must raise the residual's sum of squares on each side by what a quadratic cost with that
+    σ would: k²·s²·(σ/σ_c)², s² the per-row variance at the optimum and σ_c the σ the Jacobian's
     curvature gives with white rows (`fit.curvature_sigma`; the σ reported is wider by the windows'
-    and blocks' correlation, and the rise it must back scales with it).
+    and blocks' correlation, and the rise it must back scales with it). Where the straight walk
+    flattens, and for a breakaway level, the others are re-fitted at each probed value (`_Profile`,
+    `_rises_on_one_side`): a straight line leaves a curved valley and climbs its wall (a drawn gear's
+    static_factor: 0.45 along the line at −27σ, 0.030 with the others re-fitted, 0.029 by a full fit
+    of the other seven).
 
     Friction makes the cost a staircase in a breakaway level, and one-sided: the finite-difference
     Jacobian spans a stair's edge and promises a curvature the cost does not have (a drawn gear:
@@ -369,11 +374,13 @@ def _sigma_backed_by_cost(problem: TrajectoryProblem, fit: TrajectoryFit, notes:
     widened to the largest half-width at which a side's measured rise would reach k²·s² (as if the cost
     were quadratic out to there, in units of σ_c); with no rise on a side, or σ wider than the value,
     the parameter is not determined, with the reason. Four residual evaluations per parameter, a few
-    more where the cost flattens outward."""
+    more where the cost flattens outward, and on a re-fitted side a Jacobian (once per fit) and up to
+    PROFILE_STEPS more per probed value."""
     base = problem.residuals_of(fit.model)
     rss0 = float(base @ base)
     s2 = rss0 / max(len(base) - len(problem.names), 1)
     values = {p.name: p.estimate for p in fit.parameters}
+    profile = _Profile(problem, values, base)
     widened = []
     for p in fit.parameters:
         if not p.identifiable or p.std_error is None or p.std_error <= 0:
@@ -383,9 +390,8 @@ def _sigma_backed_by_cost(problem: TrajectoryProblem, fit: TrajectoryFit, notes:
         sigma, flat = p.std_error, ""
         for sign in (1.0, -1.0):
             moves = {n: sign * p.std_error * direction.get(n, 0.0) for n in values}  # per σ of p
-            rises = _rises_on_one_side(
-                problem, values, moves, abs(p.estimate) / p.std_error or math.inf, rss0
-            )
+            k_max = abs(p.estimate) / p.std_error or math.inf
+            rises = _rises_on_one_side(problem, values, moves, k_max, rss0, (profile, p.name))
             for k, rise in rises.items():
                 if rise <= 0:
                     side = "+" if sign > 0 else "−"
@@ -407,10 +413,81 @@ def _sigma_backed_by_cost(problem: TrajectoryProblem, fit: TrajectoryFit, notes:
             p.std_error = sigma
     if widened:
         text = (
-            "σ checked on the cost (each side, ±3σ and ±9σ along the valley floor, must raise the sum"
-            f" of squares as its curvature says): {', '.join(widened)}"
+            "σ checked on the cost (each side, ±3σ and ±9σ along the valley floor, the others re-fitted"
+            f" where it flattens and for a breakaway level): {', '.join(widened)}"
         )
         notes.append(Note(JOINT, text, named=False))
+
+
+PROFILE_STEPS = 4
+"""Chord steps of `_Profile.settle` per probed value. Against `fit_problem` on the other seven (drawn
+gears, docs/BENCHMARKS.md, issue 25): gear 2's static_factor at −3σ…−63σ within 3 % of the full
+re-fit's rise after two steps; gear 16's at +9σ within 4 % after three, at −9σ 2× above it (still
+falling): the chord overstates the rise where the valley bends most, so σ errs on the narrow side."""
+PROFILE_SETTLED = 0.1
+"""A chord step that lowers the rise by less than this share of it ends the re-fit."""
+
+
+class _Profile:
+    """The cost with one parameter held and the others re-fitted: chord (Gauss–Newton) steps on the
+    others with the Jacobian of the optimum, taken once (a finite difference of each parameter, the
+    relative step `fit_problem` uses) and reused at every probed value: one residual per step."""
+
+    def __init__(self, problem: TrajectoryProblem, values: dict[str, float], base: np.ndarray) -> None:
+        self.problem, self.values, self.base = problem, values, base
+        self._jacobian: np.ndarray | None = None  # per parameter, ∂r/∂(value/|value|)
+        self._floor: dict[str, float] = {}
+
+    def rise(self, held: str, point: dict[str, float], residual: np.ndarray) -> float:
+        """The profile's rise at `point` (`residual` there): the sum of squares with the others re-fitted,
+        over the same at the optimum's value of `held` (the fit may have stopped short of its minimum
+        along the others: a rise from there would count that stop)."""
+        if held not in self._floor:
+            settled = self.settle(held, self.values, self.base)
+            self._floor[held] = float(settled @ settled)
+        settled = self.settle(held, point, residual)
+        return float(settled @ settled) - self._floor[held]
+
+    def jacobian(self) -> np.ndarray:
+        if self._jacobian is None:
+            columns = []
+            for name, value in self.values.items():
+                scale = abs(value) or 1.0
+                moved = self.problem.model_with({**self.values, name: value + PROFILE_DIFF_STEP * scale})
+                columns.append((self.problem.residuals_of(moved) - self.base) / PROFILE_DIFF_STEP)
+            self._jacobian = np.column_stack(columns)
+        return self._jacobian
+
+    def settle(self, held: str, point: dict[str, float], residual: np.ndarray) -> np.ndarray:
+        """The residual at `point` with every parameter but `held` re-fitted (at most PROFILE_STEPS chord
+        steps, each kept only if it lowers the sum of squares and leaves a valid model)."""
+        names = [n for n in self.values if n != held]
+        if not names:
+            return residual
+        index = [list(self.values).index(n) for n in names]
+        scales = np.array([abs(self.values[n]) or 1.0 for n in names])
+        lsq = np.linalg.pinv(self.jacobian()[:, index])
+        for _ in range(PROFILE_STEPS):
+            step = -(lsq @ residual) * scales
+            trial = {**point, **{n: point[n] + d for n, d in zip(names, step, strict=True)}}
+            if any(trial[n] < 0 <= point[n] and not SIGNED.fullmatch(n) for n in names):
+                break  # past a positive parameter's bound
+            try:
+                again = self.problem.residuals_of(self.problem.model_with(trial))
+            except UserInputError:
+                break
+            rss, before = float(again @ again), float(residual @ residual)
+            if rss >= before:
+                break
+            point, residual = trial, again
+            if before - rss < PROFILE_SETTLED * max(before - float(self.base @ self.base), 0.0):
+                break
+        return residual
+
+
+PROFILE_DIFF_STEP = 1e-2
+"""`_Profile`'s finite-difference step, relative to each value: `fit_problem`'s (above the stick/slip
+timing's jumps)."""
 
 
 def _rises_on_one_side(
@@ -419,26 +496,45 @@ def _rises_on_one_side(
     moves: dict[str, float],
     k_max: float,
     rss0: float,
+    profile: tuple[_Profile, str] | None = None,
 ) -> dict[float, float]:
     """The cost's rise from the optimum at k·`moves` for k in CURVATURE_SIGMAS, then on by ×3 while the
     rise grows less than SUB_QUADRATIC times per ×3 (the cost flattening or falling outward: a stair's
     edge near the optimum, a plateau or another valley past it), up to k_max (the move that would take
-    the parameter past zero)."""
+    the parameter past zero).
+
+    With `profile` (the re-fit and the parameter held), the side is walked on the real profile, the
+    others re-fitted at each value, once the straight walk rises slower than a parabola (it flattens:
+    where the line leaves a curved valley it climbs the valley's wall instead, and the rise it shows
+    there is the wall's) or from the start for a breakaway level (BREAKAWAY_LEVELS: its valley with the
+    moving level curves through the sticks' timing)."""
     rises: dict[float, float] = {}
+    seen: dict[float, tuple[dict[str, float], np.ndarray]] = {}
+    refit = profile is not None and profile[1] in BREAKAWAY_LEVELS
     ks = list(CURVATURE_SIGMAS)
     while ks:
         k = ks.pop(0)
         if k > k_max:
             break  # a move past zero says nothing of σ; σ > value/k is wide already
+        point = {n: v + k * moves.get(n, 0.0) for n, v in values.items()}
         try:
-            moved = problem.model_with({n: v + k * moves.get(n, 0.0) for n, v in values.items()})
+            moved = problem.model_with(point)
         except UserInputError:
             break
         r = problem.residuals_of(moved)
-        rises[k] = float(r @ r) - rss0
+        seen[k], rises[k] = (point, r), float(r @ r) - rss0
+        if rises[k] > 0 and profile is not None and refit:
+            rises[k] = profile[0].rise(profile[1], point, r)
         if rises[k] <= 0:
             break
         if not ks and len(rises) > 1 and rises[k] < SUB_QUADRATIC * list(rises.values())[-2]:
+            if profile is not None and not refit:  # the line flattens: the real profile from here on
+                refit = True
+                rises = {j: profile[0].rise(profile[1], *seen[j]) for j in rises}
+                if min(rises.values()) <= 0:
+                    break
+                if rises[k] >= SUB_QUADRATIC * list(rises.values())[-2]:
+                    continue  # the real profile is a parabola there: no further
             ks.append(3.0 * k)
     return rises
 
