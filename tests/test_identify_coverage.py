@@ -212,7 +212,7 @@ class _OneParameterCost:
 def _checked(g, estimate: float, sigma: float):
     problem = _OneParameterCost(g)
     p = ParameterEstimate("f_cl", estimate, estimate, sigma, True)
-    fit = TrajectoryFit({"f_cl": estimate}, [p], 1.0, 1.0, 1000, profile_direction={"f_cl": {"f_cl": 1.0}})
+    fit = TrajectoryFit({"f_cl": estimate}, [p], 1.0, 1.0, 1000, profile_direction={"f_cl": {"f_cl": 1.0}})  # type: ignore[arg-type]
     fit.curvature_sigma = {"f_cl": sigma}  # white rows: the reported σ is the curvature's
     notes: list = []
     _sigma_backed_by_cost(problem, fit, notes)  # type: ignore[arg-type]
@@ -283,7 +283,7 @@ def _checked_in_a_valley(name: str, x: float, sigma: float, g, c):
     p = ParameterEstimate(name, x, x, sigma, True)
     q = ParameterEstimate("b_l", 1.0, 1.0, 0.001, True)  # its own cost: a parabola of exactly that σ
     fit = TrajectoryFit(
-        {name: x, "b_l": 1.0},
+        {name: x, "b_l": 1.0},  # type: ignore[arg-type]  # the stand-in problem takes values
         [p, q],
         1.0,
         1.0,
