@@ -398,27 +398,52 @@ def shooting_windows(run: Run, window_s: float, quiet_rows: int = 6) -> list[Run
     """Cut a run into consecutive windows of about `window_s`, each a run of its own.
 
     Each cut is moved (by up to a quarter window) to where the input has been steady for `quiet_rows`
-    each side, so a window never starts on a jump of the input, where no smoothed speed is right.
+    each side, so a window never starts on a jump of the input, where no smoothed speed is right; and,
+    of those places, to the nearest where neither body accelerates beyond what its sensor's noise makes
+    of a steady one, else where they accelerate least (`_acceleration_excess`): in a fast transient the
+    local cubic's speed is off, and each window starting there replays the error (a velocity loop's
+    set-point reversals: J_m +2.7 %, on ideal data too; docs/BENCHMARKS.md).
     """
     t = run.t
     edges = np.searchsorted(t, np.arange(t[0], t[-1], window_s))
     column = run.input_column
-    if column is not None:
-        drive = run[column]
-        jumps = np.flatnonzero(np.abs(np.diff(drive)) > 1e-9 * (np.max(np.abs(drive)) + 1e-300)) + 1
-        reach = max(1, int(0.25 * window_s / float(np.median(np.diff(t)))))
-        for i, edge in enumerate(edges[1:], start=1):
-            for shift in sorted(range(-reach, reach + 1), key=abs):
-                e = edge + shift
-                near = jumps[(jumps > e - quiet_rows) & (jumps <= e + quiet_rows)]
-                if 0 < e < len(t) and near.size == 0:
-                    edges[i] = e
-                    break
+    drive = run[column] if column is not None else np.zeros(len(t))
+    jumps = np.flatnonzero(np.abs(np.diff(drive)) > 1e-9 * (np.max(np.abs(drive)) + 1e-300)) + 1
+    excess = _acceleration_excess(run)
+    reach = max(1, int(0.25 * window_s / float(np.median(np.diff(t)))))
+    for i, edge in enumerate(edges[1:], start=1):
+        shifts = sorted(range(-reach, reach + 1), key=abs)
+        inside = [edge + s for s in shifts if 0 < edge + s < len(t)]
+        quiet = [e for e in inside if not np.any((jumps > e - quiet_rows) & (jumps <= e + quiet_rows))]
+        # An input that changes every sample (a velocity loop's output) is never quiet: any place will do.
+        allowed = quiet if quiet or jumps.size < len(t) // 2 else inside
+        steady = [e for e in allowed if excess[e] <= 1.0]
+        if steady or allowed:
+            edges[i] = steady[0] if steady else min(allowed, key=lambda e: excess[e])
     edges = np.unique(np.append(edges, len(t)))
     out = []
     for start, stop in itertools.pairwise(edges):
         if stop - start >= 3:
             out.append(Run({c: v[start:stop] for c, v in run.columns.items()}, run.meta))
+    return out
+
+
+def _acceleration_excess(run: Run) -> np.ndarray:
+    """Per sample: the larger over the bodies of |α| from the local cubic of its position (the one the
+    windows' starting speeds come from, `SMOOTHING_WINDOW_S`) over SPEED_BAND_SIGMAS of what the
+    sensor's noise alone gives it (`position_noise`); over 1, the body is accelerating. Noise-free
+    data: |α| itself."""
+    out = np.zeros(len(run))
+    dt = float(np.median(np.diff(run.t))) if len(run) > 1 else 0.0
+    length = _smoothing_length(SMOOTHING_WINDOW_S, dt) if dt > 0 else 0
+    if not length or len(run) <= length:
+        return out
+    gain = float(np.linalg.norm(savgol_coeffs(length, 3, deriv=2, delta=dt)))
+    for pos in ("theta_m", "theta_l"):
+        if pos in run:
+            alpha = np.abs(savgol_filter(run[pos], length, 3, deriv=2, delta=dt))
+            band = SPEED_BAND_SIGMAS * gain * position_noise(run[pos])
+            out = np.maximum(out, alpha / band if band > 0 else alpha)
     return out
 
 
