@@ -307,10 +307,13 @@ def refine_jointly(start: HarmonicDriveModel, begun: Start, joint: bool, say: Pr
     fair = [label for label in candidates if cost[label] <= cost["start"]]
     chosen = Choice(candidates, cost, held, min(fair, key=lambda label: held[label]), refined, priors)
     if chosen.kept == JOINT and refined is not None:
-        _polish(problem, is_held, chosen, refined, begun.names, notes)
+        polished = _polish(problem, is_held, chosen, refined, begun.names, notes)
         if problem.block_sigma and chosen.refined is not None:
             _sigma_backed_by_cost(
-                problem.for_parameters(chosen.refined.model, begun.names), chosen.refined, notes
+                problem.for_parameters(chosen.refined.model, begun.names),
+                chosen.refined,
+                notes,
+                residual[JOINT] if polished is None else polished,
             )
     _say_verdict(chosen, fair, notes)
     return chosen
@@ -323,9 +326,10 @@ def _polish(
     refined: TrajectoryFit,
     names: list[str],
     notes: list[Note],
-) -> None:
+) -> np.ndarray | None:
     """Chosen on held-out windows, the joint values then use every window (a few breakaways more), kept
-    only if that does not lose what was won: never worse than the start or the staged model held out."""
+    only if that does not lose what was won: never worse than the start or the staged model held out.
+    The polished model's residual on every window if it was kept."""
     polished = fit_problem(
         problem.for_parameters(refined.model, names).with_priors(chosen.priors, refined.prior_weight),
         max_evaluations=PLAIN_POLISH_EVALUATIONS if problem.block_sigma else POLISH_EVALUATIONS,
@@ -342,6 +346,8 @@ def _polish(
                 named=False,
             )
         )
+        return again
+    return None
 
 
 CURVATURE_SIGMAS = (3.0, 9.0)
@@ -352,7 +358,9 @@ profile is not yet quadratic there and `_rises_on_one_side` looks 3× further. G
 rose 5.3× and 5.6× from 3σ to 9σ (then 8.6× to 27σ), its other parameters 8.2–9.6×."""
 
 
-def _sigma_backed_by_cost(problem: TrajectoryProblem, fit: TrajectoryFit, notes: list[Note]) -> None:
+def _sigma_backed_by_cost(
+    problem: TrajectoryProblem, fit: TrajectoryFit, notes: list[Note], base: np.ndarray | None = None
+) -> None:
     """Each σ checked against the cost itself (issue 25 item 2), a profile likelihood: moved by ±kσ
     along its valley floor (the others following `fit.profile_direction`, the linearized profile), a
     parameter must raise the residual's sum of squares on each side by what a quadratic cost with that
@@ -374,22 +382,27 @@ def _sigma_backed_by_cost(problem: TrajectoryProblem, fit: TrajectoryFit, notes:
     widened to the largest half-width at which a side's measured rise would reach k²·s² (as if the cost
     were quadratic out to there, in units of σ_c); with no rise on a side, or σ wider than the value,
     the parameter is not determined, with the reason. Four residual evaluations per parameter, a few
-    more where the cost flattens outward, and on a re-fitted side a Jacobian (once per fit) and up to
-    PROFILE_STEPS more per probed value."""
-    base = problem.residuals_of(fit.model)
+    more where the cost flattens outward, and on a re-fitted side up to PROFILE_STEPS more per probed
+    value (the Jacobian the re-fit uses comes from the ±3σ probes: `_Profile`)."""
+    base = problem.residuals_of(fit.model) if base is None else base  # `base`: the caller's, if known
     rss0 = float(base @ base)
     s2 = rss0 / max(len(base) - len(problem.names), 1)
     values = {p.name: p.estimate for p in fit.parameters}
     profile = _Profile(problem, values, base)
-    widened = []
-    for p in fit.parameters:
-        if not p.identifiable or p.std_error is None or p.std_error <= 0:
-            continue
+    given = {p.name: p.std_error for p in fit.parameters if p.identifiable and (p.std_error or 0.0) > 0}
+    checked = [p for p in fit.parameters if p.name in given]
+    steps: dict[str, dict[str, float]] = {}  # per parameter, its move per σ along the valley floor
+    for p in checked:
         direction = fit.profile_direction.get(p.name, {p.name: 1.0})
+        steps[p.name] = {n: float(given[p.name] or 0.0) * direction.get(n, 0.0) for n in values}
+        profile.pair(steps[p.name], CURVATURE_SIGMAS[0], abs(p.estimate) / float(given[p.name] or 1.0))
+    widened = []
+    for p in checked:
+        assert p.std_error is not None
         sigma_c = fit.curvature_sigma.get(p.name, p.std_error)
         sigma, flat = p.std_error, ""
         for sign in (1.0, -1.0):
-            moves = {n: sign * p.std_error * direction.get(n, 0.0) for n in values}  # per σ of p
+            moves = {n: sign * d for n, d in steps[p.name].items()}  # per σ of p
             k_max = abs(p.estimate) / p.std_error or math.inf
             rises = _rises_on_one_side(problem, values, moves, k_max, rss0, (profile, p.name))
             for k, rise in rises.items():
@@ -430,13 +443,42 @@ PROFILE_SETTLED = 0.1
 
 class _Profile:
     """The cost with one parameter held and the others re-fitted: chord (Gauss–Newton) steps on the
-    others with the Jacobian of the optimum, taken once (a finite difference of each parameter, the
-    relative step `fit_problem` uses) and reused at every probed value: one residual per step."""
+    others with one Jacobian of the optimum, reused at every probed value: one residual per step.
+
+    The Jacobian costs no evaluation of its own: the straight walks' first probes, at ±3σ of every
+    parameter along its valley floor, are central differences along directions that span the
+    parameters (the covariance's columns), and their residuals are kept (`residual_at`); only where
+    they do not span them is it a finite difference of each parameter (the relative step `fit_problem`
+    uses)."""
 
     def __init__(self, problem: TrajectoryProblem, values: dict[str, float], base: np.ndarray) -> None:
         self.problem, self.values, self.base = problem, values, base
+        self.scales = np.array([abs(v) or 1.0 for v in values.values()])
         self._jacobian: np.ndarray | None = None  # per parameter, ∂r/∂(value/|value|)
         self._floor: dict[str, float] = {}
+        self._seen: dict[tuple[float, ...], np.ndarray] = {}
+        self._pairs: list[tuple[np.ndarray, np.ndarray]] = []  # (scaled move, residual difference)
+
+    def residual_at(self, point: dict[str, float]) -> np.ndarray:
+        """The residual at `point` (UserInputError for an invalid model), each point evaluated once."""
+        key = tuple(point.values())
+        if key not in self._seen:
+            self._seen[key] = self.problem.residuals_of(self.problem.model_with(point))
+        return self._seen[key]
+
+    def pair(self, move: dict[str, float], k: float, k_max: float) -> None:
+        """Probe ±k·`move` (a straight walk's first points, evaluated here once) and keep the pair as a
+        central difference for the Jacobian."""
+        if k > k_max:
+            return
+        ends = []
+        for sign in (1.0, -1.0):
+            try:
+                ends.append(self.residual_at({n: v + sign * k * move[n] for n, v in self.values.items()}))
+            except UserInputError:
+                return
+        scaled = np.array([2.0 * k * move[n] for n in self.values]) / self.scales
+        self._pairs.append((scaled, ends[0] - ends[1]))
 
     def rise(self, held: str, point: dict[str, float], residual: np.ndarray) -> float:
         """The profile's rise at `point` (`residual` there): the sum of squares with the others re-fitted,
@@ -449,6 +491,11 @@ class _Profile:
         return float(settled @ settled) - self._floor[held]
 
     def jacobian(self) -> np.ndarray:
+        if self._jacobian is None and self._pairs:
+            moves = np.column_stack([m for m, _ in self._pairs])  # parameters × pairs
+            if np.linalg.matrix_rank(moves) == len(self.values):
+                differences = np.column_stack([d for _, d in self._pairs])
+                self._jacobian = differences @ np.linalg.pinv(moves)
         if self._jacobian is None:
             columns = []
             for name, value in self.values.items():
@@ -465,22 +512,28 @@ class _Profile:
         if not names:
             return residual
         index = [list(self.values).index(n) for n in names]
-        scales = np.array([abs(self.values[n]) or 1.0 for n in names])
-        lsq = np.linalg.pinv(self.jacobian()[:, index])
+        columns = self.jacobian()[:, index]
+        lsq = np.linalg.pinv(columns)
+        floor = float(self.base @ self.base)
         for _ in range(PROFILE_STEPS):
-            step = -(lsq @ residual) * scales
+            scaled = lsq @ residual
+            before = float(residual @ residual)
+            promised = float(np.sum((columns @ scaled) ** 2))  # the fall the linear model promises
+            if promised <= PROFILE_SETTLED * max(before - floor, 0.0):
+                break
+            step = -scaled * self.scales[index]
             trial = {**point, **{n: point[n] + d for n, d in zip(names, step, strict=True)}}
             if any(trial[n] < 0 <= point[n] and not SIGNED.fullmatch(n) for n in names):
                 break  # past a positive parameter's bound
             try:
-                again = self.problem.residuals_of(self.problem.model_with(trial))
+                again = self.residual_at(trial)
             except UserInputError:
                 break
-            rss, before = float(again @ again), float(residual @ residual)
+            rss = float(again @ again)
             if rss >= before:
                 break
             point, residual = trial, again
-            if before - rss < PROFILE_SETTLED * max(before - float(self.base @ self.base), 0.0):
+            if before - rss < PROFILE_SETTLED * max(before - floor, 0.0):
                 break
         return residual
 
@@ -518,10 +571,13 @@ def _rises_on_one_side(
             break  # a move past zero says nothing of σ; σ > value/k is wide already
         point = {n: v + k * moves.get(n, 0.0) for n, v in values.items()}
         try:
-            moved = problem.model_with(point)
+            r = (
+                problem.residuals_of(problem.model_with(point))
+                if profile is None
+                else profile[0].residual_at(point)
+            )
         except UserInputError:
             break
-        r = problem.residuals_of(moved)
         seen[k], rises[k] = (point, r), float(r @ r) - rss0
         if rises[k] > 0 and profile is not None and refit:
             rises[k] = profile[0].rise(profile[1], point, r)
