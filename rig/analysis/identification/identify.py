@@ -24,10 +24,12 @@ from model.registry import JOINT_CANDIDATES, MOTOR
 from model.run import Run
 from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.fit.trajectory import (
+    BLOCKS,
     CHANNELS,
     SIGNED,
     TrajectoryFit,
     TrajectoryProblem,
+    block_of_residual,
     fit_problem,
     with_lifted_static,
 )
@@ -389,6 +391,7 @@ def _sigma_backed_by_cost(
     s2 = rss0 / max(len(base) - len(problem.names), 1)
     values = {p.name: p.estimate for p in fit.parameters}
     profile = _Profile(problem, values, base)
+    cluster = _largest_cluster(problem)
     given = {p.name: p.std_error for p in fit.parameters if p.identifiable and (p.std_error or 0.0) > 0}
     checked = [p for p in fit.parameters if p.name in given]
     steps: dict[str, dict[str, float]] = {}  # per parameter, its move per σ along the valley floor
@@ -400,6 +403,8 @@ def _sigma_backed_by_cost(
     for p in checked:
         assert p.std_error is not None
         sigma_c = fit.curvature_sigma.get(p.name, p.std_error)
+        # σ over σ_c: the rows' correlation, at most what one cluster of σ's rows all alike would give.
+        inflation = min(p.std_error / sigma_c, cluster)
         sigma, flat = p.std_error, ""
         for sign in (1.0, -1.0):
             moves = {n: sign * d for n, d in steps[p.name].items()}  # per σ of p
@@ -410,9 +415,9 @@ def _sigma_backed_by_cost(
                     side = "+" if sign > 0 else "−"
                     flat = f"the cost does not rise at {side}{k:g}σ of it (one-sided or flat)"
                     break
-                # The half-width where this rise would reach k²·s², over σ_c: how much flatter than
-                # the curvature the cost is on this side.
-                sigma = max(sigma, p.std_error * k * p.std_error * math.sqrt(s2 / rise) / sigma_c)
+                # The half-width where this rise would reach k²·s² (how much flatter than the
+                # curvature the cost is on this side), widened by the rows' correlation.
+                sigma = max(sigma, k * p.std_error * math.sqrt(s2 / rise) * inflation)
             if flat:
                 break
         if not flat and sigma > abs(p.estimate) > 0:
@@ -430,6 +435,19 @@ def _sigma_backed_by_cost(
             f" where it flattens and for a breakaway level): {', '.join(widened)}"
         )
         notes.append(Note(JOINT, text, named=False))
+
+
+def _largest_cluster(problem: TrajectoryProblem) -> float:
+    """√(rows of the largest cluster σ was computed over: a window, or a block of windows where
+    `block_sigma`): the most the rows' correlation can widen σ over the white curvature's σ_c (those rows
+    all alike: one sample). A sandwich σ wider still comes from leverage or a stair in the Jacobian, not
+    from correlation, and asking the cost for that rise asks more than its rows can show (the open-loop
+    sine of tests/test_fit_any_run.py: σ/σ_c = 400 on 6,000 rows, blocks of 600)."""
+    windows = getattr(problem, "window_of_residual", None)
+    if windows is None or not len(windows):
+        return math.inf
+    groups = block_of_residual(problem, BLOCKS) if problem.block_sigma else windows
+    return math.sqrt(float(np.bincount(groups).max()))
 
 
 PROFILE_STEPS = 4
