@@ -329,3 +329,21 @@ def test_a_straight_walk_that_flattens_then_climbs_a_wall_is_profiled():
     p, q, _ = _checked_in_a_valley("f_cl", 0.3, s0, g, lambda x: 1.0 + 0.006 * ((x - 0.3) / 0.018) ** 4)
     assert p.identifiable and p.std_error == pytest.approx(27.0 * s0, rel=1e-6)
     assert q.identifiable and q.std_error == pytest.approx(0.001, rel=1e-6)
+
+
+def test_a_sandwich_sigma_wider_than_its_clusters_allow_is_not_asked_of_the_cost():
+    # σ 0.02 reported where the white curvature gives σ_c 0.0002 (σ/σ_c = 100: a jackknife driven by
+    # leverage or a stair, not by correlation), on clusters (windows) of 4 rows: their correlation can
+    # widen σ over σ_c by √4 = 2 at most. The cost is a parabola of half-width 0.002 (10× flatter than
+    # σ_c): that half-width times 2 is 0.004, inside the σ reported, which the cost therefore backs. The
+    # former check scaled the rise by σ/σ_c = 100 and widened σ ×10 to 0.2.
+    problem = _OneParameterCost(lambda x: (x - 0.3) / 0.002 * NOISE_S)
+    problem.window_of_residual = np.repeat(np.arange(250), 4)  # type: ignore[attr-defined]
+    problem.block_sigma = False  # type: ignore[attr-defined]
+    p = ParameterEstimate("f_cl", 0.3, 0.3, 0.02, True)
+    fit = TrajectoryFit({"f_cl": 0.3}, [p], 1.0, 1.0, 1000, profile_direction={"f_cl": {"f_cl": 1.0}})  # type: ignore[arg-type]
+    fit.curvature_sigma = {"f_cl": 0.0002}
+    notes: list = []
+    _sigma_backed_by_cost(problem, fit, notes)  # type: ignore[arg-type]
+    assert p.identifiable and p.std_error == pytest.approx(0.02, rel=1e-9)
+    assert notes == []
