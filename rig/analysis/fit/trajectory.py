@@ -394,29 +394,33 @@ def _boundary_mean(values: np.ndarray, steps: np.ndarray) -> np.ndarray:
     return 0.5 * (values[:-2] + values[1:-1])
 
 
-def shooting_windows(run: Run, window_s: float, quiet_rows: int = 6) -> list[Run]:
+def shooting_windows(run: Run, window_s: float, quiet_rows: int = 6, calm: bool = False) -> list[Run]:
     """Cut a run into consecutive windows of about `window_s`, each a run of its own.
 
     Each cut is moved (by up to a quarter window) to where the input has been steady for `quiet_rows`
-    each side, so a window never starts on a jump of the input, where no smoothed speed is right; and,
-    of those places, to the nearest where neither body accelerates beyond what its sensor's noise makes
-    of a steady one, else where they accelerate least (`_acceleration_excess`): in a fast transient the
-    local cubic's speed is off, and each window starting there replays the error (a velocity loop's
-    set-point reversals: J_m +2.7 %, on ideal data too; docs/BENCHMARKS.md).
+    each side, so a window never starts on a jump of the input, where no smoothed speed is right.
+
+    `calm` (a continuous process, `replay_scheme`): of those places, the nearest where neither body
+    accelerates beyond what its sensor's noise makes of a steady one, else where they accelerate least
+    (`_acceleration_excess`), an input that changes every sample (a velocity loop's voltage) counting as
+    never quiet: in a fast transient the local cubic's speed is off, and each window starting there
+    replays the error (a velocity loop's set-point reversals: J_m +2.7 %, on ideal data too). Runs of our
+    own plant, replayed exactly, keep the plain cuts: moved, they raised the campaign's error at the
+    truth on its pulse run (docs/BENCHMARKS.md).
     """
     t = run.t
     edges = np.searchsorted(t, np.arange(t[0], t[-1], window_s))
     column = run.input_column
     drive = run[column] if column is not None else np.zeros(len(t))
     jumps = np.flatnonzero(np.abs(np.diff(drive)) > 1e-9 * (np.max(np.abs(drive)) + 1e-300)) + 1
-    excess = _acceleration_excess(run)
+    excess = _acceleration_excess(run) if calm else np.zeros(len(t))
     reach = max(1, int(0.25 * window_s / float(np.median(np.diff(t)))))
     for i, edge in enumerate(edges[1:], start=1):
         shifts = sorted(range(-reach, reach + 1), key=abs)
         inside = [edge + s for s in shifts if 0 < edge + s < len(t)]
         quiet = [e for e in inside if not np.any((jumps > e - quiet_rows) & (jumps <= e + quiet_rows))]
         # An input that changes every sample (a velocity loop's output) is never quiet: any place will do.
-        allowed = quiet if quiet or jumps.size < len(t) // 2 else inside
+        allowed = quiet if quiet or not calm or jumps.size < len(t) // 2 else inside
         steady = [e for e in allowed if excess[e] <= 1.0]
         if steady or allowed:
             edges[i] = steady[0] if steady else min(allowed, key=lambda e: excess[e])
@@ -576,7 +580,7 @@ class TrajectoryProblem:
             bands = speed_bands(run) if continuous else None
             run = with_smooth_velocities(run, lag_s=replay_step(run, step) / 2)
             seen = [c for c in channels if c in run]
-            pieces = shooting_windows(run, window_s)
+            pieces = shooting_windows(run, window_s, calm=continuous)
             scales = _channel_scales(run, seen, pieces)
             self.windows += [
                 _Window(
