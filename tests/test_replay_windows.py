@@ -77,3 +77,35 @@ def test_windows_are_cut_into_runs_of_about_equal_steps(monkeypatch: pytest.Monk
     assert all(a.stop == b.start for a, b in itertools.pairwise(chunks))
     sums = [int(steps[c].sum()) for c in chunks]
     assert len(sums) == 2 and max(sums) <= 0.6 * steps.sum()  # not 4 windows each: 830 against 20
+
+
+def _velocity_loop_record(model: HarmonicDriveModel, duration_s: float) -> Run:
+    """Our plant at 1 µs (near-continuous: its Euler error is a hundredth of the replay's) in a voltage
+    velocity PI at 1 kHz, set-point ±40 rad/s reversing every second, ideal sensors; t, u, θ_m, θ_l."""
+    rate_s, fine_s, kp, ki = 1e-3, 1e-6, 0.1, 2.0
+    plant = Plant(model)
+    n = round(duration_s / rate_s)
+    setpoint = np.where(np.mod(np.arange(n) * rate_s, 2.0) < 1.0, 40.0, -40.0)
+    cols = {c: np.empty(n) for c in ("t", "u", "theta_m", "theta_l")}
+    integral = 0.0
+    for i in range(n):
+        error = setpoint[i] - plant.x[1]
+        u = min(max(kp * error + integral, -24.0), 24.0)
+        integral += ki * error * rate_s
+        cols["t"][i], cols["u"][i] = i * rate_s, u
+        cols["theta_m"][i], cols["theta_l"][i] = plant.x[0], plant.x[2]
+        plant.advance(np.full(round(rate_s / fine_s), u), "voltage", 0.0, fine_s)
+    return Run(cols, {}).validate()
+
+
+def test_a_velocity_loops_reversals_do_not_bias_the_motor_inertia(seed: HarmonicDriveModel):
+    """J_m fitted alone (every other parameter true) on a velocity loop's set-point reversals. A window
+    that starts inside a reversal starts from the local cubic's speed, which misses the transient: with
+    the cuts where they fell, J_m came out +3.3 % here (46 s lab profile, ideal sensors: +2.7 %); with the
+    cuts moved to where the bodies are calm, +0.02 % at σ 0.015 %. Bound: 0.5 %, a sixth of the bias and
+    above what replaying a continuous plant leaves (−0.24 % on the 46 s profile)."""
+    run = _velocity_loop_record(seed, 6.0)
+    truth = get_values(seed, ["J_m"])["J_m"]
+    fit = trajectory.fit_trajectories(seed, [run], ["J_m"], 0.1, 1e-4)
+    (estimate,) = fit.parameters
+    assert abs(estimate.estimate / truth - 1) < 0.005, f"J_m {100 * (estimate.estimate / truth - 1):+.2f} %"
