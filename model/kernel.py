@@ -711,10 +711,6 @@ def static_motor_friction(
     return out
 
 
-OUT_COLUMNS = len(OUT)
-"""Columns of an output row (numba takes the count as a constant, not `len` of the enum)."""
-
-
 @njit(cache=True, nogil=True)
 def replay_windows(
     p: np.ndarray,
@@ -731,6 +727,7 @@ def replay_windows(
     scales: np.ndarray,
     outputs: np.ndarray,
     residual: np.ndarray,
+    work: np.ndarray,
 ) -> None:
     """Replay shooting windows, each from its own start state, and write (replayed − measured)/scale of
     each window's channels, channel after channel, into `residual` (the trajectory fit's inner loop,
@@ -741,13 +738,10 @@ def replay_windows(
     (`seg_steps` steps of `seg_dt`, a row every `seg_decim` steps); where the step changes, the speeds move
     from half the old step behind the positions to half the new one, at the old step's last acceleration,
     a stuck or stopping body staying at zero. The last segment's final step writes the last sample's row.
+    `work`: rows of `OUT` columns, two more than the longest window's.
     """
     n_windows = windows.shape[0]
-    longest = 0
-    for w in range(n_windows):
-        longest = max(longest, windows[w, 4])
-    rows_out = np.empty((longest + 2, OUT_COLUMNS))
-    last = np.empty((1, OUT_COLUMNS))
+    rows_out, last = work[:-1], work[-1:]  # a step change's last step is written apart, then copied
     x = np.empty(starts.shape[1])
     for w in range(n_windows):
         x[:] = starts[w]

@@ -329,6 +329,7 @@ class _Batch:
         mode = MODES[self.mode]
 
         def part(chunk: slice) -> None:
+            work = np.empty((int(self.table[chunk, 4].max()) + 2, len(OUT)))
             replay_windows(
                 plant.p,
                 plant.flags,
@@ -344,6 +345,7 @@ class _Batch:
                 self.scales[chunk],
                 self.outputs,
                 residual,
+                work,
             )
 
         chunks = _chunks(self.steps_per_window, REPLAY_THREADS)
