@@ -23,7 +23,7 @@ from test_replay_continuous import FLOOR
 
 from model.params import HarmonicDriveModel
 from model.run import Run
-from rig.analysis.fit.parameters import get_values
+from rig.analysis.fit.parameters import get_values, with_values
 from rig.analysis.fit.trajectory import (
     ParameterEstimate,
     TrajectoryFit,
@@ -34,6 +34,7 @@ from rig.analysis.identification.dynamics_stage import motor_constants
 from rig.analysis.identification.identify import (
     JOINT_EXPERIMENTS,
     JOINT_WINDOW_S,
+    _breakaway_start,
     _sigma_backed_by_cost,
     disagreement_scales,
 )
@@ -347,3 +348,23 @@ def test_a_sandwich_sigma_wider_than_its_clusters_allow_is_not_asked_of_the_cost
     _sigma_backed_by_cost(problem, fit, notes)  # type: ignore[arg-type]
     assert p.identifiable and p.std_error == pytest.approx(0.02, rel=1e-9)
     assert notes == []
+
+
+class _BreakawayCost:
+    """A stand-in TrajectoryProblem whose RMS is |static_factor − 1.27| (the models are real ones)."""
+
+    def residuals_of(self, model: HarmonicDriveModel) -> np.ndarray:
+        return np.full(10, abs(get_values(model, ["static_factor"])["static_factor"] - 1.27))
+
+
+def test_the_joint_step_starts_from_the_breakaway_level_that_costs_least(seed: HarmonicDriveModel):
+    """From the seed's 1.0388 (cost 0.23), the ratios 1.0, 1.1, 1.25, 1.5 cost 0.27, 0.17, 0.02, 0.23: it
+    starts at 1.25. Held by a staged prior, or costing more than the start everywhere, it stays."""
+    notes: list = []
+    start = _breakaway_start(_BreakawayCost(), seed, ["J_m", "static_factor"], {}, notes)  # type: ignore[arg-type]
+    assert get_values(start, ["static_factor"])["static_factor"] == pytest.approx(1.25)
+    assert len(notes) == 1 and "static_factor 1.25" in notes[0].text
+    held = _breakaway_start(_BreakawayCost(), seed, ["static_factor"], {"static_factor": (1.0, 0.1)}, [])  # type: ignore[arg-type]
+    assert held is seed
+    near = with_values(seed, {"static_factor": 1.26})
+    assert _breakaway_start(_BreakawayCost(), near, ["static_factor"], {}, []) is near  # type: ignore[arg-type]
