@@ -210,3 +210,16 @@ def test_each_run_on_a_rig_kept_open_has_its_own_clock_from_zero(store: RunStore
     # The rig's clock went on: the second run began where the first left it.
     # Half a period of slack: the origin is a sum of float periods, the bound a product.
     assert store.get(second.id)["meta"]["rig_time_origin_s"] >= (len(store.read(first.id)) - 0.5) * period_s
+
+
+def test_a_run_that_fails_on_what_it_finds_still_tells_its_stream_how_it_ended(store: RunStore) -> None:
+    """A sweep whose fastest pass does not fit the stroke ahead fails once it has begun (the program is
+    planned from where the motor is): its run is sealed `aborted`, and its final `run` event follows the
+    `running` one (without it a page following the run said `running` for ever: test_browser's second run)."""
+    plan = plan_run("speed-sweep", {"speeds_rad_s": [500.0], "travel_fraction": 0.02})
+    with RigWorker(sim_config(), store) as worker:
+        job = worker.wait(worker.submit(plan).id, WAIT_S)
+        events = worker.events.since(0, run_id=job.id, limit=10**6)
+    runs = [e.data["status"] for e in events if e.kind == EventKind.RUN]
+    assert job.status == JobStatus.FAILED and "stroke" in (job.error or ""), job.error
+    assert runs == [RunStatus.RUNNING, RunStatus.ABORTED], runs

@@ -523,6 +523,15 @@ class RigWorker(_JobThread):
         self._set_state(WorkerState.RUNNING, f"job {job.id}", job_id=job.id)
 
     def _after(self, job: Job) -> None:
+        # A run begun and never told ended (the job failed on what the run found, e.g. a program that does
+        # not fit the stroke left, before anything moved): its final document still goes to its stream,
+        # or a page following it says `running` for ever.
+        with self._lock:
+            untold = [run_id for run_id in job.runs if run_id in self._live]
+        for run_id in untold:
+            document = run_document(self.store, run_id)
+            if document.status.finished:
+                self._run_ended(job, document)
         with self._lock:
             if self.state in (WorkerState.RUNNING, WorkerState.STOPPING):
                 self._set_state(WorkerState.IDLE, f"job {job.id} {job.status}")
