@@ -285,10 +285,7 @@ class _Batch:
     measured: np.ndarray  # (rows, channels)
     scales: np.ndarray  # (windows, channels)
     outputs: np.ndarray  # the kernel's OUT columns of the channels
-
-    @property
-    def steps_per_window(self) -> np.ndarray:
-        return np.diff(np.concatenate([[0], np.cumsum(self.seg_steps)])[self.table[:, 1:3]], axis=1)[:, 0]
+    steps_per_window: np.ndarray  # integration steps of each window (`_chunks` balances them)
 
     @classmethod
     def of(cls, windows: list[tuple[_Window, int]], emf_step_s: float) -> _Batch:
@@ -314,6 +311,7 @@ class _Batch:
             np.concatenate([r.measured for r in replays]),
             np.array([r.scales for r in replays]),
             np.array(replays[0].outputs, np.int64),
+            np.array([sum(n for n, _, _ in r.segments) for r in replays], np.int64),
         )
 
     def replay_into(self, model: HarmonicDriveModel, residual: np.ndarray) -> None:
@@ -348,7 +346,7 @@ class _Batch:
                 work,
             )
 
-        chunks = _chunks(self.steps_per_window, REPLAY_THREADS)
+        chunks = _chunks(self.steps_per_window, REPLAY_THREADS)  # the same split at every evaluation
         if len(chunks) == 1:
             part(chunks[0])
             return
@@ -639,10 +637,11 @@ class TrajectoryProblem:
         for batch in self._batches():
             batch.replay_into(model, residual)
         at = 0
-        plant = Plant(model)
+        plant = None
         for w in self.windows:
             size = len(w.run) * len(w.channels)
             if w.replay is None:  # an irregular time base: `replay_rows` cuts each interval on its own
+                plant = plant or Plant(model)
                 rows = replay_rows(plant, w.run, replay_mode(w.run), w.step_s, time_s=w.time_s)
                 residual[at : at + size] = np.concatenate(
                     [(rows[:, CHANNELS[ch]] - w.run[ch]) / w.scales[ch] for ch in w.channels]
