@@ -48,10 +48,10 @@ def test_a_load_coulomb_level_above_the_held_static_level_lifts_it():
         with_lifted_static(seed, {"J_m": -1.0})
 
 
-def test_the_back_emf_lag_inertia_is_k_m_k_b_over_r_times_the_step():
-    """0.0302 · 0.0302 / 0.299 · 1e-4 s = 3.0503e-7 kg·m² on the seed (0.55 % of its J_m)."""
+def test_the_back_emf_lag_inertia_is_k_m_k_b_over_r_times_half_the_step():
+    """0.0302 · 0.0302 / 0.299 · 1e-4 s / 2 = 1.5251e-7 kg·m² on the seed (0.28 % of its J_m)."""
     assert emf_lag_inertia(load_model("seed"), 1e-4) == pytest.approx(
-        0.0302 * 0.0302 / 0.299 * 1e-4, rel=1e-12
+        0.0302 * 0.0302 / 0.299 * 1e-4 / 2, rel=1e-12
     )
 
 

@@ -200,6 +200,7 @@ class _OneParameterCost:
         self.names = ["f_cl"]
         self.noise = _noise()
         self.g = g
+        self.nuisance = 0  # no window's start is free
 
     def model_with(self, values):
         return values
@@ -263,6 +264,7 @@ class _CurvedValleyCost:
         self.noise = np.random.default_rng(3).standard_normal(1000)
         self.noise[:2] = 0.0
         self.g, self.c, self.eps = g, c, eps
+        self.nuisance = 0  # no window's start is free
 
     def model_with(self, values):
         return values

@@ -20,6 +20,7 @@ the optimum (`prior_weight`).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 import math
 import os
@@ -86,7 +87,7 @@ def data_only_estimates(
     data_jac, data_fun = jac[:m], fun[:m]
     n = data_jac.shape[1]
     step = -np.linalg.pinv(data_jac.T @ data_jac) @ (data_jac.T @ data_fun)
-    s2 = float(data_fun @ data_fun) / max(m - n, 1)
+    s2 = float(data_fun @ data_fun) / max(m - n - problem.nuisance, 1)
     cov = window_robust_covariance(data_jac, data_fun, problem.window_of_residual, s2)
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     return {
@@ -108,6 +109,9 @@ class _Window:
     step_s: float  # the longest integration step of its replay
     replay: _Replay | None = None  # the replay's inputs, prepared once (None: `replay_rows` each time)
     emf_step_s: float = 0.0  # a coarse voltage replay of a continuous process: its step (`emf_lag_inertia`)
+    # Orthonormal columns over the window's residual: what errors of its measured start state make of
+    # it, projected out of the residual (`TrajectoryProblem.with_free_starts`); None: the start is held.
+    start_basis: np.ndarray | None = None
 
 
 PLANT_SOURCE = "sim"
@@ -165,18 +169,18 @@ def replay_scheme(run: Run, dt_s: float, refine_voltage: bool = True) -> tuple[f
 
 def emf_lag_inertia(model: HarmonicDriveModel, step_s: float) -> float:
     """The inertia [kg·m²] a voltage-driven replay of a continuous process at `step_s` must add to J_m so
-    that its back-EMF, taken at a speed a step old, does not bias the fit: c_e·h, c_e = K_m·K_b/R.
+    that its back-EMF, taken at the speed a step starts with, does not bias the fit: c_e·h/2,
+    c_e = K_m·K_b/R.
 
-    The explicit back-EMF torque −c_e·ω(t − h) ≈ −c_e·ω(t) + c_e·h·α acts as an inertia −c_e·h; without
-    it J_m's optimum (the others at the truth) lay c_e·h above the tenth-step replay's (+0.43 % on issue
-    25's gear, one run of 46 s; K_s, s3, J_l's optima within 0.04 % of it). Added to the replay's plant,
-    it takes the tenth-step refinement's place at about a quarter of its cost (docs/BENCHMARKS.md, issue
-    25 items 5, 6). (VOLTAGE_REFINE's c_e·h/2 leaves out the window's start speed, itself half a step
-    behind.)"""
+    The semi-implicit Euler step takes the back-EMF torque at the step's first speed, half a step behind
+    the step's mean: −c_e·ω(t − h/2) ≈ −c_e·ω(t) + c_e·(h/2)·α acts as an inertia −c_e·h/2. J_m's
+    optimum with the others at the truth (three drawn gears, both generators, windows' starts held or
+    free): −0.20…−0.44 % with c_e·h added, −0.12…+0.07 % with c_e·h/2, +0.22 % with none (the figures:
+    docs/BENCHMARKS.md, issue 25)."""
     motor = model.motor
     if not motor.R:
         return 0.0
-    return motor.K_m * motor.K_b / motor.R * step_s
+    return motor.K_m * motor.K_b / motor.R * step_s / 2
 
 
 @dataclass
@@ -551,6 +555,44 @@ def _channel_scales(run: Run, channels: list[str], windows: list[Run]) -> dict[s
     return scales
 
 
+DIFF_STEP = 1e-2
+"""`solve`'s relative finite-difference step (see there)."""
+FREE_START_DIFF_STEP = 1e-3
+"""`solve`'s relative step on windows with free starts: their residual no longer carries the starts'
+ringing, σ shrink to 0.01–0.1 % of the inertias and the stiffness, and a step of 1 % spans tens of σ
+(its secant stopped the fit short: drawn gears' costs fell at −3σ of the result)."""
+FREE_START_STATES = ("omega_m", "theta_l", "omega_l")
+"""The start states `with_free_starts` frees: the speeds (5-sample differences of quantized, noisy
+positions) and the load's position, whose error against the motor's is the spring's twist. The motor's
+position is the encoder's own reading, its error a fraction of a count."""
+START_RANK_RTOL = 1e-8
+"""A freed state whose sensitivity column adds less than this (relative, QR) to a window's basis is one
+its residual does not depend on there (a rigid model's load, a window at rest)."""
+
+
+def _start_step(w: _Window, state: str) -> float:
+    """The central-difference step of a window's start `state`: about the noise the measured value
+    carries (`position_noise` and the local cubic's gain for speeds), a millionth of the window's
+    motion on ideal data; 0 when the window cannot move it (no replay, no such sensor)."""
+    if w.replay is None or w.replay.state.get(state) is None:
+        return 0.0
+    angle = "theta_l" if state.endswith("_l") else "theta_m"
+    if angle not in w.run:
+        return 0.0
+    noise = position_noise(w.run[angle]) or 1e-6 * w.scales.get(angle, 1.0)
+    if state.startswith("theta"):
+        return noise
+    dt = float(np.median(np.diff(w.run.t)))
+    length = _smoothing_length(SMOOTHING_WINDOW_S, dt)
+    return noise * float(np.linalg.norm(savgol_coeffs(length, 3, deriv=1, delta=dt)))
+
+
+def _with_start(w: _Window, state: str, delta: float) -> _Window:
+    assert w.replay is not None and w.replay.state[state] is not None
+    moved = {**w.replay.state, state: float(w.replay.state[state]) + delta}  # type: ignore[arg-type]
+    return dataclasses.replace(w, replay=dataclasses.replace(w.replay, state=moved))
+
+
 class TrajectoryProblem:
     """Residuals of a model against runs over shooting windows, for a set of free parameters."""
 
@@ -604,6 +646,7 @@ class TrajectoryProblem:
         self.block_sigma = False  # σ also from contiguous blocks of windows (`block_of_residual`)
         self._batched: tuple[list[_Window], list[_Batch]] | None = None  # (of these windows, `_batches`)
         self.prior_weight = 0.0  # λ; 0 with priors: `fit_problem` measures it
+        self.diff_step = DIFF_STEP
 
     def with_priors(self, priors: dict[str, Prior], weight: float = 0.0) -> TrajectoryProblem:
         """The same problem with a prior row λ·(θ − μ)/σ for each free parameter given one (σ > 0)."""
@@ -646,8 +689,70 @@ class TrajectoryProblem:
                 residual[at : at + size] = np.concatenate(
                     [(rows[:, CHANNELS[ch]] - w.run[ch]) / w.scales[ch] for ch in w.channels]
                 )
+            elif w.start_basis is not None:
+                part = residual[at : at + size]
+                part -= w.start_basis @ (w.start_basis.T @ part)
             at += size
         return residual
+
+    def with_free_starts(
+        self, model: HarmonicDriveModel, states: Sequence[str] = FREE_START_STATES
+    ) -> TrajectoryProblem:
+        """The same problem with each window's measured start `states` left free: the directions its
+        residual takes under small errors of those states (central differences under `model`) are
+        projected out of it (variable projection, the basis held), so no parameter is fitted to what a
+        noisy start alone makes of a window.
+
+        A window starts from measured positions and 5-sample speeds: the load's position to a few
+        encoder counts and its speed to ~1e-3 rad/s, which ring the spring's resonance through the whole
+        window; at a drawn gear's truth that ringing was 2/3 of the residual and the joint fit traded
+        b_l for f_cl against it (docs/BENCHMARKS.md). Each freed state costs one degree of freedom per
+        window (`nuisance`)."""
+        windows = [dataclasses.replace(w, start_basis=None) for w in self.windows]
+        plain = copy.copy(self)
+        plain.windows = windows
+        columns: list[np.ndarray] = []
+        for state in states:
+            step = [_start_step(w, state) for w in windows]
+            if not any(step):
+                continue
+            moved = [plain._moved(model, windows, state, sign, step) for sign in (1.0, -1.0)]
+            sizes = [len(w.run) * len(w.channels) for w in windows]
+            delta = np.repeat(np.array([h or 1.0 for h in step]), sizes)
+            columns.append((moved[0] - moved[1]) / (2 * delta))
+        at = 0
+        for i, w in enumerate(windows):
+            size = len(w.run) * len(w.channels)
+            if w.replay is not None and columns:
+                sens = np.column_stack([c[at : at + size] for c in columns])
+                q, r = np.linalg.qr(sens)
+                diag = np.abs(np.diag(r))
+                keep = diag > START_RANK_RTOL * max(float(diag.max()), 1e-300)
+                if np.any(keep):
+                    windows[i] = dataclasses.replace(w, start_basis=np.ascontiguousarray(q[:, keep]))
+            at += size
+        other = copy.copy(self)
+        other.windows = windows
+        other._batched = None
+        other.diff_step = FREE_START_DIFF_STEP
+        return other
+
+    def _moved(
+        self, model: HarmonicDriveModel, windows: list[_Window], state: str, sign: float, step: list[float]
+    ) -> np.ndarray:
+        """`model`'s residual with each window's start `state` moved by sign × its step (0: left)."""
+        moved = copy.copy(self)
+        moved.windows = [
+            _with_start(w, state, sign * h) if h else w for w, h in zip(windows, step, strict=True)
+        ]
+        moved._batched = None
+        return moved.residuals_of(model)
+
+    @property
+    def nuisance(self) -> int:
+        """Degrees of freedom the freed start states take (`with_free_starts`): the residual's rows less
+        these and the parameters are what its variance is measured over."""
+        return sum(w.start_basis.shape[1] for w in self.windows if w.start_basis is not None)
 
     def _batches(self) -> list[_Batch]:
         """The windows with a prepared replay, batched by what their replays share (the plant's emf
@@ -785,7 +890,7 @@ def profile_directions(
     and overstates how well the data pin it."""
     m = problem.size
     data_jac = jac[:m]
-    s2 = float(fun[:m] @ fun[:m]) / max(m - jac.shape[1], 1)
+    s2 = float(fun[:m] @ fun[:m]) / max(m - jac.shape[1] - problem.nuisance, 1)
     cov = np.linalg.pinv(data_jac.T @ data_jac) * np.outer(problem.x_scale, problem.x_scale)
     directions: dict[str, dict[str, float]] = {}
     sigmas: dict[str, float] = {}
@@ -802,7 +907,7 @@ def prior_weight(problem: TrajectoryProblem, jac: np.ndarray, fun: np.ndarray) -
     Then a prior row carries the weight its σ gives it beside the trajectories' own information."""
     m = problem.size
     data_jac, data_fun = jac[:m], fun[:m]
-    s2 = float(data_fun @ data_fun) / max(m - jac.shape[1], 1)
+    s2 = float(data_fun @ data_fun) / max(m - jac.shape[1] - problem.nuisance, 1)
     white = np.diag(np.linalg.pinv(data_jac.T @ data_jac)) * s2
     # The plain sandwich: c measures the windows' correlation, not how few windows see a parameter
     # (with the jackknife c took in the leverage of parameters few windows see; docs/BENCHMARKS.md).
@@ -838,7 +943,7 @@ def solve(
         start_point(problem) if x0 is None else x0,
         bounds=(_lower_bounds(names), np.full(len(names), np.inf)),
         method="trf",
-        diff_step=1e-2,
+        diff_step=problem.diff_step,
         x_scale=1.0,
         max_nfev=max_evaluations,
     )
@@ -930,7 +1035,7 @@ def _uncertainty(
 ) -> list[ParameterEstimate]:
     n = jac.shape[1]
     m = len(fun) - len(problem.priors)  # trajectory rows; the prior rows follow them
-    s2 = float(fun[:m] @ fun[:m]) / max(m - n, 1)
+    s2 = float(fun[:m] @ fun[:m]) / max(m - n - problem.nuisance, 1)
     # Column-normalized Jacobian: its conditioning says which directions the data cannot see.
     norms = np.linalg.norm(jac, axis=0)
     blind = norms == 0

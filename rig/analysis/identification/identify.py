@@ -296,9 +296,15 @@ def refine_jointly(start: HarmonicDriveModel, begun: Start, joint: bool, say: Pr
         # From whichever of the two is closer on the training windows: the staged values can be worse.
         base = min(candidates, key=lambda label: _rms(residual[label][~is_held]))
         priors = _priors(begun.rows, begun.names)
+        if problem.block_sigma:  # a lab file: each window's start states free, the basis at the start
+            problem = problem.with_free_starts(candidates[base])
+            train, _ = problem.split(HOLDOUT_EVERY)
         first = _breakaway_start(train, candidates[base], begun.names, priors, notes)
         refined = fit_problem(train.for_parameters(first, begun.names).with_priors(priors))
         refined = _out_of_a_breakaway_minimum(train, refined, begun.names, priors, notes)
+        if problem.block_sigma:
+            problem, train, refined = _with_free_starts(problem, refined, begun.names, priors, notes)
+            residual = {label: problem.residuals_of(m) for label, m in candidates.items()}
         notes += [Note(JOINT, text, named=False) for text in refined.notes]
         if base != STAGED:
             notes.append(Note(JOINT, f"joint refinement started from the {base} model", named=False))
@@ -320,6 +326,31 @@ def refine_jointly(start: HarmonicDriveModel, begun: Start, joint: bool, say: Pr
             )
     _say_verdict(chosen, fair, notes)
     return chosen
+
+
+def _with_free_starts(
+    problem: TrajectoryProblem,
+    refined: TrajectoryFit,
+    names: list[str],
+    priors: dict[str, tuple[float, float]],
+    notes: list[Note],
+) -> tuple[TrajectoryProblem, TrajectoryProblem, TrajectoryFit]:
+    """A lab file's windows with their start states free (`TrajectoryProblem.with_free_starts`), the
+    basis taken again at the first joint fit (the start's resonance and friction can be far enough from
+    the truth's that the ringing it projects out is not the data's), and the joint fit again from there
+    on them: (all windows, training windows, the fit)."""
+    problem = problem.with_free_starts(refined.model)
+    train, _ = problem.split(HOLDOUT_EVERY)
+    again = fit_problem(train.for_parameters(refined.model, names).with_priors(priors))
+    notes.append(
+        Note(
+            JOINT,
+            f"each window's start speeds and load position left free ({problem.nuisance} degrees of"
+            " freedom over the windows): the joint fit again on what they cannot explain",
+            named=False,
+        )
+    )
+    return problem, train, again
 
 
 def _polish(
@@ -389,7 +420,7 @@ def _sigma_backed_by_cost(
     value (the Jacobian the re-fit uses comes from the ±3σ probes: `_Profile`)."""
     base = problem.residuals_of(fit.model) if base is None else base  # `base`: the caller's, if known
     rss0 = float(base @ base)
-    s2 = rss0 / max(len(base) - len(problem.names), 1)
+    s2 = rss0 / max(len(base) - len(problem.names) - problem.nuisance, 1)
     values = {p.name: p.estimate for p in fit.parameters}
     profile = _Profile(problem, values, base)
     cluster = _largest_cluster(problem)
