@@ -13,6 +13,7 @@ inflation). The seeds are fixed: the outcome does not vary from run to run.
 
 from __future__ import annotations
 
+import importlib
 import math
 
 import campaign
@@ -35,6 +36,7 @@ from rig.analysis.identification.identify import (
     JOINT_EXPERIMENTS,
     JOINT_WINDOW_S,
     _breakaway_start,
+    _grid_jackknife,
     _sigma_backed_by_cost,
     disagreement_scales,
 )
@@ -43,6 +45,7 @@ from rig.runner import run_experiment
 from rig.store.runs import RunStore
 from sim_backend.inprocess import SimRig
 
+identify_module = importlib.import_module("rig.analysis.identification.identify")
 SEEDS = range(1, 9)
 """Eight pulse runs of 4.2 s each: ~1 s of simulation apiece."""
 TAIL = 0.001
@@ -265,6 +268,9 @@ class _CurvedValleyCost:
         self.noise[:2] = 0.0
         self.g, self.c, self.eps = g, c, eps
         self.nuisance = 0  # no window's start is free
+        self.window_of_residual = np.repeat(np.arange(250), 4)  # windows of 4 rows
+        self.block_sigma = False
+        self.diff_step = 1e-2
 
     def model_with(self, values):
         return values
@@ -299,7 +305,10 @@ def _checked_in_a_valley(name: str, x: float, sigma: float, g, c):
     return p, q, problem._s
 
 
-def test_a_breakaway_level_is_profiled_with_the_others_refitted():
+def test_a_breakaway_level_is_profiled_with_the_others_refitted(monkeypatch: pytest.MonkeyPatch):
+    # The profile alone: this stand-in's one informative row sits in one window, and the jackknife
+    # (left out, nothing determines it) would rightly call it undetermined (tested on its own below).
+    monkeypatch.setattr(identify_module, "_grid_jackknife", lambda *args: 0.0)
     # static_factor (a breakaway level: re-fitted from the start) at 1.05 ± 0.005: a parabola of that σ
     # above, a stair of 2σ below and flat past it (gear 2's shape: the truth 0.76 costs about what 0.95
     # does). The others' valley bends (c = 1 + 1e4·(x − 1.05)², ε = 0.001): along the straight line
@@ -370,3 +379,59 @@ def test_the_joint_step_starts_from_the_breakaway_level_that_costs_least(seed: H
     assert held is seed
     near = with_values(seed, {"static_factor": 1.26})
     assert _breakaway_start(_BreakawayCost(), near, ["static_factor"], {}, []) is near  # type: ignore[arg-type]
+
+
+class _WindowsOfParabolas:
+    """A stand-in TrajectoryProblem: window w is one row √a_w·(x − c_w), so the whole cost is
+    Σ a_w·(x − c_w)², lowest at the a-weighted mean of c, and without window i at that of the others."""
+
+    def __init__(self, centres: np.ndarray, weights: np.ndarray, block_sigma: bool = False):
+        self.c, self.a = centres, weights
+        self.window_of_residual = np.arange(len(centres))
+        self.block_sigma = block_sigma
+
+    def model_with(self, values):
+        return values
+
+    def residuals_of(self, model):
+        return np.sqrt(self.a) * (model["static_factor"] - self.c)
+
+
+def _jackknife_of_weighted_means(c: np.ndarray, a: np.ndarray, groups: np.ndarray) -> float:
+    optima = np.array([np.average(c[groups != g], weights=a[groups != g]) for g in np.unique(groups)])
+    n = len(optima)
+    return math.sqrt((n - 1) / n * float(np.sum((optima - optima.mean()) ** 2)))
+
+
+def test_a_breakaway_levels_jackknife_leaves_out_each_window_in_turn():
+    """Parabolic windows: leaving window i out moves the optimum to the weighted mean of the others, and
+    the jackknife of those optima is √((G − 1)/G·Σ_i (x̂_(i) − x̄)²), computed here from that formula;
+    the grid's parabolic vertices make it exact for such costs (rel 1e-6), wherever the grid's points
+    fall, and a grid too narrow for the optima widens ×3 until they are inside it."""
+    rng = np.random.default_rng(5)
+    c = 1.2 + 0.01 * rng.standard_normal(60)
+    a = rng.uniform(0.5, 2.0, 60)
+    expected = _jackknife_of_weighted_means(c, a, np.arange(60))
+    values = {"static_factor": float(np.average(c, weights=a)) + 1e-4}  # off the optimum: no matter
+    for half_width in (0.003, 0.0002):
+        got = _grid_jackknife(_WindowsOfParabolas(c, a), values, "static_factor", half_width)  # type: ignore[arg-type]
+        assert got == pytest.approx(expected, rel=1e-6), half_width
+
+
+def test_one_window_that_decides_a_breakaway_level_widens_its_sigma():
+    """59 windows agree at 1.2; one (a stair: its motor breaks loose or not) weighs as much as all of
+    them together and wants 1.2006. The optimum is 1.2003; without that window 1.2000: the jackknife
+    spreads that move (≈ 0.0003), where the Jacobian at the optimum sees only the total curvature.
+    With `block_sigma` (blocks of 6 windows) σ is the larger of the windows' and the blocks' jackknife."""
+    c = np.full(60, 1.2)
+    c[7] = 1.2006
+    a = np.ones(60)
+    a[7] = 59.0
+    by_window = _jackknife_of_weighted_means(c, a, np.arange(60))
+    by_block = _jackknife_of_weighted_means(c, a, np.arange(60) // 6)
+    assert 0.00029 < by_window < 0.00031  # the one window's move, nearly all of it
+    values = {"static_factor": 1.2003}
+    got = _grid_jackknife(_WindowsOfParabolas(c, a), values, "static_factor", 0.001)  # type: ignore[arg-type]
+    assert got == pytest.approx(by_window, rel=1e-6)
+    both = _grid_jackknife(_WindowsOfParabolas(c, a, block_sigma=True), values, "static_factor", 0.001)  # type: ignore[arg-type]
+    assert both == pytest.approx(max(by_window, by_block), rel=1e-6)

@@ -435,7 +435,6 @@ def _sigma_backed_by_cost(
     jackknifed: list[str] = []
     for p in checked:
         assert p.std_error is not None
-        reach = problem.diff_step * abs(p.estimate)  # the finite differences' span: σ says nothing inside
         sigma_c = fit.curvature_sigma.get(p.name, p.std_error)
         # σ over σ_c: the rows' correlation, at most what one cluster of σ's rows all alike would give.
         inflation = min(p.std_error / sigma_c, cluster)
@@ -455,6 +454,7 @@ def _sigma_backed_by_cost(
             if flat:
                 break
         if not flat and p.name in BREAKAWAY_LEVELS:
+            reach = problem.diff_step * abs(p.estimate)  # the finite differences' span: σ says nothing inside
             spread = _grid_jackknife(problem, values, p.name, max(CURVATURE_SIGMAS[-1] * sigma, reach))
             if spread > sigma:
                 sigma, jackknifed = spread, [*jackknifed, p.name]
@@ -475,6 +475,22 @@ def _sigma_backed_by_cost(
         if jackknifed:
             text += f"; {', '.join(jackknifed)} by leaving out each window (and each block) in turn"
         notes.append(Note(JOINT, text, named=False))
+
+
+def _vertices(grid: np.ndarray, costs: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Per column of `costs` (values along `grid`), the vertex of the parabola through its lowest point
+    `at` and its two neighbours (the grid point itself at an edge or where the three do not curve up):
+    a smooth cost's optimum between grid points, so a jackknife of small moves is not the grid's step."""
+    out = grid[at].astype(float)
+    step = float(grid[1] - grid[0])
+    inner = (at > 0) & (at < len(grid) - 1)
+    cols = np.flatnonzero(inner)
+    lo, mid, hi = (costs[at[cols] + k, cols] for k in (-1, 0, 1))
+    curve = lo - 2 * mid + hi
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = np.where(curve > 0, 0.5 * (lo - hi) / curve, 0.0)
+    out[cols] += step * np.clip(np.nan_to_num(shift), -0.5, 0.5)
+    return out
 
 
 JACKKNIFE_POINTS = 25
@@ -513,10 +529,11 @@ def _grid_jackknife(
         spread, edge = 0.0, False
         for part in parts:
             with np.errstate(invalid="ignore"):  # an invalid value's row: inf − inf, never the optimum
-                left_out = grid[np.nanargmin(part.sum(axis=1)[:, None] - part, axis=0)]
+                at = np.nanargmin(part.sum(axis=1)[:, None] - part, axis=0)
+                left_out = _vertices(grid, part.sum(axis=1)[:, None] - part, at)
             n = len(left_out)
             spread = max(spread, math.sqrt((n - 1) / n * float(np.sum((left_out - left_out.mean()) ** 2))))
-            edge |= bool(np.any((left_out == grid[0]) | (left_out == grid[-1])))
+            edge |= bool(np.any((at == 0) | (at == len(grid) - 1)))
         if not edge:
             break
         half_width *= 3.0
