@@ -46,7 +46,8 @@ JOINT_WINDOW_S = 0.1
 FIT_METRIC = (
     "RMS of the shooting residual over 0.1 s windows of the pulse/step/sine runs (of every run with an"
     " input column, for runs without experiment metadata) (θ_m and θ_l, each scaled by its spread in the"
-    " data) [–]"
+    " data; runs without metadata: what is left once each window's start speeds and load position are"
+    " free) [–]"
 )
 
 Progress = Callable[[str, float], None]
