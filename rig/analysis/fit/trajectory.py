@@ -2,8 +2,10 @@
 
 Closed-loop rig data replayed open loop drift away (friction integrates any error), so the residual is
 taken over short windows (multiple shooting): each window restarts the model from the measured state
-and replays the measured input over it. The cost is the article's "Euclidean norm between simulated
-and measured values", per channel scaled by the data's own spread so that radians and rad/s weigh alike.
+and replays the measured input over it (a run without metadata: its start speeds and load position
+left free, `TrajectoryProblem.with_free_starts`). The cost is the article's "Euclidean norm between
+simulated and measured values", per channel scaled by the data's own spread so that radians and rad/s
+weigh alike.
 
 Uncertainty: the Gauss–Newton covariance at the optimum, windows taken as independent clusters (the
 sandwich, `window_robust_covariance`). A parameter whose column of the scaled Jacobian is (nearly) a
@@ -566,8 +568,8 @@ FREE_START_STATES = ("omega_m", "theta_l", "omega_l")
 positions) and the load's position, whose error against the motor's is the spring's twist. The motor's
 position is the encoder's own reading, its error a fraction of a count."""
 START_RANK_RTOL = 1e-8
-"""A freed state whose sensitivity column adds less than this (relative, QR) to a window's basis is one
-its residual does not depend on there (a rigid model's load, a window at rest)."""
+"""A freed state whose unit sensitivity column adds less than this (QR) to a window's basis is one its
+residual does not depend on there (a rigid model's load) or the others already span."""
 
 
 def _start_step(w: _Window, state: str) -> float:
@@ -725,9 +727,10 @@ class TrajectoryProblem:
             size = len(w.run) * len(w.channels)
             if w.replay is not None and columns:
                 sens = np.column_stack([c[at : at + size] for c in columns])
-                q, r = np.linalg.qr(sens)
+                norms = np.linalg.norm(sens, axis=0)
+                q, r = np.linalg.qr(sens / np.where(norms > 0, norms, 1.0))  # radians and rad/s alike
                 diag = np.abs(np.diag(r))
-                keep = diag > START_RANK_RTOL * max(float(diag.max()), 1e-300)
+                keep = diag > START_RANK_RTOL
                 if np.any(keep):
                     windows[i] = dataclasses.replace(w, start_basis=np.ascontiguousarray(q[:, keep]))
             at += size
