@@ -511,27 +511,27 @@ def _grid_jackknife(
     static_factor (its cost against the truth's 885 of the whole record's 681 in units of s²), the
     Jacobian gave σ 7e-5 and the error was 15σ; left out, the optimum moved 0.0016 (docs/BENCHMARKS.md).
     """
-    windows = problem.window_of_residual
-    count = int(windows.max()) + 1
-    block = (np.arange(count) * BLOCKS) // count  # each window's block, as `block_of_residual` has it
+    groups = [problem.window_of_residual]  # each row's window; with `block_sigma` its block as well
+    if problem.block_sigma:
+        groups.append(block_of_residual(problem, BLOCKS))
     spread = 0.0
     for _ in range(3):
         grid = values[name] + half_width * np.linspace(-1.0, 1.0, JACKKNIFE_POINTS)
-        costs = np.full((len(grid), count), np.inf)  # per value, per window
+        costs = [np.full((len(grid), int(g.max()) + 1), np.inf) for g in groups]  # per value, per group
         for i, v in enumerate(grid):
             try:
                 model = problem.model_with({**values, name: float(v)})
             except UserInputError:
                 continue  # outside the model's valid region (a negative level): never an optimum
-            costs[i] = np.bincount(windows, weights=problem.residuals_of(model) ** 2, minlength=count)
-        parts = [costs]
-        if problem.block_sigma:
-            parts.append(np.stack([costs[:, block == b].sum(axis=1) for b in range(BLOCKS)], axis=1))
+            squares = problem.residuals_of(model) ** 2
+            for g, cost in zip(groups, costs, strict=True):
+                cost[i] = np.bincount(g, weights=squares, minlength=cost.shape[1])
         spread, edge = 0.0, False
-        for part in parts:
+        for cost in costs:
+            without = cost.sum(axis=1)[:, None] - cost  # each group left out, at each value
             with np.errstate(invalid="ignore"):  # an invalid value's row: inf − inf, never the optimum
-                at = np.nanargmin(part.sum(axis=1)[:, None] - part, axis=0)
-                left_out = _vertices(grid, part.sum(axis=1)[:, None] - part, at)
+                at = np.nanargmin(without, axis=0)
+            left_out = _vertices(grid, without, at)
             n = len(left_out)
             spread = max(spread, math.sqrt((n - 1) / n * float(np.sum((left_out - left_out.mean()) ** 2))))
             edge |= bool(np.any((at == 0) | (at == len(grid) - 1)))
