@@ -528,8 +528,8 @@ def _grid_jackknife(
                 cost[i] = np.bincount(g, weights=squares, minlength=cost.shape[1])
         spread, edge = 0.0, False
         for cost in costs:
-            without = cost.sum(axis=1)[:, None] - cost  # each group left out, at each value
             with np.errstate(invalid="ignore"):  # an invalid value's row: inf − inf, never the optimum
+                without = cost.sum(axis=1)[:, None] - cost  # each group left out, at each value
                 at = np.nanargmin(without, axis=0)
             left_out = _vertices(grid, without, at)
             n = len(left_out)
